@@ -1,0 +1,96 @@
+# Helpers shared by the rules: config validation, scene/shard enumeration and the resolved
+# config slice of each stage (the rules' params, so rerun triggers fire only where an edit
+# changes a stage's inputs).
+
+import json
+import os
+import shutil
+import sys
+
+from snakemake.exceptions import WorkflowError
+
+from psdfactory import PsdError
+from psdfactory import config as psd_config
+from psdfactory.seeding import scene_id, scene_index
+
+try:
+    psd_config.validate(config)  # Snakemake's own JSON-schema validation, defaults filled in
+except PsdError as e:
+    raise WorkflowError(str(e)) from None
+
+# Jobs call the `psdfactory` CLI; when Snakemake runs from an unactivated virtualenv, use
+# the one installed beside the Python that runs Snakemake.
+if shutil.which("psdfactory") is None:
+    os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")
+
+RESULTS = config["results"].rstrip("/")
+DATASETS = list(config["datasets"])
+
+
+wildcard_constraints:
+    dataset="[A-Za-z][A-Za-z0-9_]*",
+    scene="[A-Za-z][A-Za-z0-9_]*-[0-9]{6}",
+    shard="[0-9]{5}",
+
+
+def scene_path(name):
+    """A file of a scene folder, as an output/input pattern."""
+    return f"{RESULTS}/{{dataset}}/scenes/{{scene}}/{name}"
+
+
+def log_path(stage):
+    return f"{RESULTS}/{{dataset}}/logs/{stage}/{{scene}}.log"
+
+
+def as_json(obj):
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"))
+
+
+def sample_params(wildcards):
+    return as_json(psd_config.sample_params(config, wildcards.dataset, scene_index(wildcards.scene)))
+
+
+def simulate_params(wildcards):
+    return as_json(psd_config.simulate_params(config))
+
+
+def render_params(wildcards):
+    return as_json(psd_config.render_params(config))
+
+
+def label_params(wildcards):
+    return as_json(psd_config.label_params(config))
+
+
+def manifest_params(wildcards):
+    return as_json(psd_config.manifest_params(config, wildcards.dataset))
+
+
+def shard_scene_files(name):
+    """Input function: one file of every scene of a manifest shard."""
+
+    def files(wildcards):
+        rng = psd_config.shard_indices(config, wildcards.dataset, int(wildcards.shard))
+        return [
+            f"{RESULTS}/{wildcards.dataset}/scenes/{scene_id(wildcards.dataset, i)}/{name}"
+            for i in rng
+        ]
+
+    return files
+
+
+def shard_files(dataset, table):
+    n = psd_config.n_shards(config, dataset)
+    return [f"{RESULTS}/{dataset}/manifest/{table}/shard-{k:05d}.parquet" for k in range(n)]
+
+
+def dataset_shards(table):
+    return lambda wildcards: shard_files(wildcards.dataset, table)
+
+
+def all_targets():
+    targets = []
+    for ds in DATASETS:
+        targets += shard_files(ds, "scenes") + shard_files(ds, "particles")
+        targets.append(f"{RESULTS}/{ds}/contact_sheet.png")
+    return targets

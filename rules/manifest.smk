@@ -1,0 +1,42 @@
+rule manifest_shard:
+    input:
+        labels=shard_scene_files("labels.json"),
+        particles=shard_scene_files("particles.parquet"),
+        images=shard_scene_files("image.png"),
+    output:
+        scenes=f"{RESULTS}/{{dataset}}/manifest/scenes/shard-{{shard}}.parquet",
+        particles=f"{RESULTS}/{{dataset}}/manifest/particles/shard-{{shard}}.parquet",
+    params:
+        stage=manifest_params,
+        results=RESULTS,
+        scene_dirs=lambda wildcards, input: [os.path.dirname(p) for p in input.labels],
+    log:
+        f"{RESULTS}/{{dataset}}/logs/manifest/shard-{{shard}}.log",
+    conda:
+        "../envs/scene.yaml"
+    shell:
+        "psdfactory manifest --params {params.stage:q} --results {params.results:q}"
+        " --scenes-out {output.scenes:q} --particles-out {output.particles:q}"
+        " {params.scene_dirs:q} > {log:q} 2>&1"
+
+
+rule contact_sheet:
+    input:
+        dataset_shards("scenes"),
+    output:
+        report(
+            f"{RESULTS}/{{dataset}}/contact_sheet.png",
+            caption="../workflow/report/contact_sheet.rst",
+            category="Datasets",
+            subcategory="{dataset}",
+        ),
+    params:
+        results=RESULTS,
+        n=config["show"]["n_scenes"],
+    log:
+        f"{RESULTS}/{{dataset}}/logs/contact_sheet.log",
+    conda:
+        "../envs/scene.yaml"
+    shell:
+        "psdfactory show --results {params.results:q} --dataset {wildcards.dataset}"
+        " -n {params.n} --out {output:q} > {log:q} 2>&1"

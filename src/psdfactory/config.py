@@ -1,0 +1,150 @@
+"""Configuration: schema validation with defaults (Snakemake's own validator), the checks a
+schema cannot express, and the resolved slice of config that each stage depends on.
+
+The slices are what the Snakemake rules put in their ``params``, so Snakemake's rerun
+triggers fire exactly where an edit changes a stage's inputs.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+from . import PsdError
+
+SCHEMA = Path(__file__).with_name("config.schema.yaml")
+
+
+def validate(config: dict) -> dict:
+    """Validate in place (filling defaults) with Snakemake's validator, then the semantic checks."""
+    from snakemake.exceptions import WorkflowError
+    from snakemake.utils import validate as sm_validate
+
+    try:
+        sm_validate(config, str(SCHEMA), set_default=True)
+    except WorkflowError as e:
+        raise PsdError(f"invalid config: {_short(e)}") from None
+    problems = semantic_problems(config)
+    if problems:
+        raise PsdError("invalid config:\n  " + "\n  ".join(problems))
+    return config
+
+
+def _short(e: Exception) -> str:
+    """The useful part of a jsonschema error: the message and the key path."""
+    cause = e
+    while getattr(cause, "__cause__", None) is not None or getattr(cause, "__context__", None) is not None:
+        nxt = cause.__cause__ or cause.__context__
+        if nxt is None:
+            break
+        cause = nxt
+    path = getattr(cause, "absolute_path", None) or getattr(cause, "path", None)
+    msg = getattr(cause, "message", None) or str(e)
+    if path:
+        return f"{'.'.join(str(p) for p in path)}: {msg}"
+    return msg.splitlines()[0] if msg else str(e)
+
+
+def load_config(path: Path) -> dict:
+    import yaml
+
+    if not Path(path).is_file():
+        raise PsdError(f"config file not found: {path}")
+    try:
+        config = yaml.safe_load(Path(path).read_text()) or {}
+    except yaml.YAMLError as e:
+        raise PsdError(f"{path} is not valid YAML: {e}") from None
+    if not isinstance(config, dict):
+        raise PsdError(f"{path} must hold a mapping of config keys")
+    return validate(config)
+
+
+def _ordered(name: str, r: list, problems: list[str], strict: bool = False) -> None:
+    if (r[0] >= r[1]) if strict else (r[0] > r[1]):
+        problems.append(f"{name}: [{r[0]}, {r[1]}] must have lo {'<' if strict else '<='} hi")
+
+
+def semantic_problems(config: dict) -> list[str]:
+    problems: list[str] = []
+    for name, ds in config["datasets"].items():
+        key = f"datasets.{name}"
+        _ordered(f"{key}.count", ds["count"], problems)
+        if ds["count"][1] > 65534:
+            problems.append(f"{key}.count: at most 65534 particles fit a 16-bit mask")
+        size = ds["size"]
+        _ordered(f"{key}.size.mean", size["mean"], problems)
+        _ordered(f"{key}.size.sigma", size["sigma"], problems)
+        _ordered(f"{key}.size.bounds", size["bounds"], problems, strict=True)
+        if size["sigma"][0] <= 0:
+            problems.append(f"{key}.size.sigma: must be > 0, got {size['sigma']}")
+        if size["bounds"][1] >= ds["table_size"] / 2:
+            problems.append(
+                f"{key}.size.bounds: particles up to {size['bounds'][1]} mm do not fit a "
+                f"{ds['table_size']} mm table; raise table_size or lower the upper bound"
+            )
+        if sum(ds["split"].values()) <= 0:
+            problems.append(f"{key}.split: fractions must add up to more than 0")
+        sp = ds["shape_params"]
+        for r in ("aspect_b", "aspect_c", "n_points"):
+            if r in sp:
+                _ordered(f"{key}.shape_params.{r}", sp[r], problems)
+        if ds["shape"] == "mesh":
+            files = sp.get("mesh_files") or []
+            if not files:
+                problems.append(f"{key}.shape_params.mesh_files: shape 'mesh' needs at least one mesh file")
+            for f in files:
+                if not Path(f).is_file():
+                    problems.append(f"{key}.shape_params.mesh_files: file not found: {f}")
+        elif sp.get("mesh_files"):
+            problems.append(f"{key}.shape_params.mesh_files: only used with shape 'mesh' (shape is {ds['shape']!r})")
+    r = config["render"]
+    for k in ("light_elevation_deg", "exposure", "blur_px", "noise_sigma", "ambient"):
+        _ordered(f"render.{k}", r[k], problems)
+    lo, hi = r["light_elevation_deg"]
+    if not (0 < lo and hi <= 90):
+        problems.append("render.light_elevation_deg: must lie in (0, 90]")
+    return problems
+
+
+# ---- the slice of config each stage depends on ---------------------------------------------
+
+def sample_params(config: dict, dataset: str, index: int) -> dict:
+    ds = config["datasets"][dataset]
+    return {
+        "seed": config["seed"],
+        "dataset": dataset,
+        "index": int(index),
+        "shape": ds["shape"],
+        "shape_params": copy.deepcopy(ds["shape_params"]),
+        "table_size": ds["table_size"],
+        "count": list(ds["count"]),
+        "size": copy.deepcopy(ds["size"]),
+        "placement": copy.deepcopy(ds["placement"]),
+    }
+
+
+def simulate_params(config: dict) -> dict:
+    return copy.deepcopy(config["physics"])
+
+
+def render_params(config: dict) -> dict:
+    return copy.deepcopy(config["render"])
+
+
+def label_params(config: dict) -> dict:
+    return copy.deepcopy(config["labels"])
+
+
+def manifest_params(config: dict, dataset: str) -> dict:
+    return {"split": dict(config["datasets"][dataset]["split"])}
+
+
+def n_shards(config: dict, dataset: str) -> int:
+    ds = config["datasets"][dataset]
+    return -(-ds["n_scenes"] // ds["shard_size"])
+
+
+def shard_indices(config: dict, dataset: str, shard: int) -> range:
+    ds = config["datasets"][dataset]
+    lo = shard * ds["shard_size"]
+    return range(lo, min(lo + ds["shard_size"], ds["n_scenes"]))

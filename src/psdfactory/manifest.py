@@ -1,0 +1,124 @@
+"""Gather per-scene labels into sharded Parquet manifests.
+
+``<results>/<dataset>/manifest/scenes/shard-NNNNN.parquet``: one row per scene.
+``<results>/<dataset>/manifest/particles/shard-NNNNN.parquet``: one row per particle.
+Shard k holds scenes k*shard_size … (k+1)*shard_size-1, so adding scenes rewrites only the
+last shard and the new ones. Image paths are relative to the results root.
+Read a whole table with ``pyarrow.parquet.read_table('<results>/<dataset>/manifest/scenes')``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from . import PsdError
+from .io import read_json, read_parquet, write_parquet
+from .seeding import rng_for
+
+SPLIT_ORDER = ("train", "val", "test")
+
+SCENE_SCHEMA = pa.schema(
+    [
+        ("scene_id", pa.string()),
+        ("dataset", pa.string()),
+        ("index", pa.int64()),
+        ("split", pa.string()),
+        ("image_path", pa.string()),
+        ("mask_path", pa.string()),
+        ("mm_per_px", pa.float64()),
+        ("resolution", pa.int32()),
+        ("n_particles", pa.int32()),
+        ("n_visible", pa.int32()),
+        ("covered_fraction", pa.float64()),
+        ("d10_mm", pa.float64()),
+        ("d50_mm", pa.float64()),
+        ("d90_mm", pa.float64()),
+        ("d10_v_mm", pa.float64()),
+        ("d50_v_mm", pa.float64()),
+        ("d90_v_mm", pa.float64()),
+        ("shape_type", pa.string()),
+        ("size_mean", pa.float64()),
+        ("size_sigma", pa.float64()),
+        ("table_size_mm", pa.float64()),
+        ("render_backend", pa.string()),
+        ("settled_fraction", pa.float64()),
+        ("worst_penetration_mm", pa.float64()),
+        ("sim_attempts", pa.int32()),
+        ("config_hash", pa.string()),
+        ("psd_size_mm", pa.list_(pa.float64())),
+        ("psd_q0", pa.list_(pa.float64())),
+        ("psd_q3", pa.list_(pa.float64())),
+    ]
+)
+
+PARTICLE_COLUMNS = ("scene_id", "particle_id", "size_mm", "volume_mm3", "x_mm", "y_mm", "z_mm", "visible_px")
+
+
+def assign_split(entropy: list[int], fractions: dict[str, float]) -> str:
+    """A scene's split from its own random stream: stable when scenes are added."""
+    names = [s for s in SPLIT_ORDER if s in fractions] + sorted(s for s in fractions if s not in SPLIT_ORDER)
+    total = sum(fractions[s] for s in names)
+    if total <= 0:
+        raise PsdError("split fractions must add up to more than 0")
+    u = rng_for(entropy, "split").random() * total
+    acc = 0.0
+    for s in names:
+        acc += fractions[s]
+        if u < acc:
+            return s
+    return names[-1]
+
+
+def shard_name(k: int) -> str:
+    return f"shard-{k:05d}.parquet"
+
+
+def build_shard(scene_dirs: list[Path], results_root: Path, fractions: dict[str, float]) -> tuple[pa.Table, pa.Table]:
+    rows, particles = [], []
+    results_root = Path(results_root).resolve()
+    for d in map(Path, scene_dirs):
+        rec = read_json(d / "labels.json")
+        spec = read_json(d / "spec.json")
+        for f in ("image.png", "mask.png"):
+            if not (d / f).is_file():
+                raise PsdError(f"missing {d / f}; rerun the render job of {rec['scene_id']}")
+        rel = d.resolve().relative_to(results_root)
+        row = {k: rec.get(k) for k in SCENE_SCHEMA.names}
+        row.update(
+            split=assign_split(spec["entropy"], fractions),
+            image_path=str(rel / "image.png"),
+            mask_path=str(rel / "mask.png"),
+        )
+        rows.append(row)
+        pt = read_parquet(d / "particles.parquet")
+        missing = [c for c in PARTICLE_COLUMNS if c not in pt.column_names]
+        if missing:
+            raise PsdError(f"{d / 'particles.parquet'} lacks columns {missing}; rerun the label job")
+        particles.append(pt)
+    scenes = pa.Table.from_pylist(rows, schema=SCENE_SCHEMA)
+    parts = pa.concat_tables(particles) if particles else pa.table({c: [] for c in PARTICLE_COLUMNS})
+    return scenes, parts
+
+
+def write_shard(scene_dirs: list[Path], results_root: Path, fractions: dict[str, float], scenes_out: Path, particles_out: Path) -> pa.Table:
+    scenes, parts = build_shard(scene_dirs, results_root, fractions)
+    write_parquet(particles_out, parts)
+    write_parquet(scenes_out, scenes)
+    return scenes
+
+
+def read_scenes(results_root: Path, dataset: str) -> pa.Table:
+    path = Path(results_root) / dataset / "manifest" / "scenes"
+    if not path.is_dir() or not any(path.glob("*.parquet")):
+        raise PsdError(f"no manifest at {path}; run the workflow first (snakemake -j2)")
+    import pyarrow.parquet as pq
+
+    return pq.read_table(path)
+
+
+def split_counts(scenes: pa.Table) -> dict[str, int]:
+    splits, counts = np.unique(scenes.column("split").to_numpy(zero_copy_only=False), return_counts=True)
+    return {str(s): int(c) for s, c in zip(splits, counts)}

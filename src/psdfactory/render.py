@@ -1,0 +1,303 @@
+"""Stage 3: render the settled bed top-down: ``image.png`` (RGB) and ``mask.png`` (16-bit ids).
+
+The fast default backend (``tiny``) uses pybullet's TinyRenderer, which is CPU-only and costs
+per pixel. A far camera with a narrow field of view gives a metric top-down view in which the
+table exactly fills the image, so ``mm_per_px = table_size / resolution``.
+TinyRenderer has no anti-aliasing and no working cast shadows, so the image is supersampled
+and shadows / contact occlusion are shaded afterwards from the depth buffer.
+Mask values: 0 = table, k = particle_id + 1.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Callable
+
+import numpy as np
+from scipy import ndimage
+
+from . import PsdError
+from .physics import CM, quat_to_matrix
+from .seeding import rng_for
+from .shapes import Geometry
+
+Range = tuple[float, float]
+MAX_PARTICLES_16BIT = 65534
+
+
+@dataclass(frozen=True)
+class RenderParams:
+    backend: str = "tiny"
+    resolution: int = 512
+    supersample: int = 2
+    camera_height_mm: float = 20000.0
+    # light: direction toward the light, drawn per scene
+    light_azimuth_deg: Range = (0.0, 360.0)
+    light_elevation_deg: Range = (35.0, 70.0)
+    light_intensity: Range = (0.85, 1.15)
+    ambient: Range = (0.35, 0.5)
+    shadow_strength: Range = (0.35, 0.6)
+    occlusion_strength: Range = (0.4, 0.8)
+    # materials
+    palette: tuple[tuple[float, float, float], ...] = ((0.55, 0.52, 0.48), (0.45, 0.40, 0.35), (0.62, 0.60, 0.58))
+    particle_brightness: Range = (0.75, 1.25)
+    particle_hue_jitter: float = 0.03
+    surface_detail: float = 0.06
+    table_rgb: tuple[float, float, float] = (0.22, 0.24, 0.27)
+    table_brightness: Range = (0.8, 1.2)
+    table_texture: float = 0.08
+    # camera / sensor
+    exposure: Range = (0.9, 1.1)
+    white_balance_jitter: float = 0.04
+    vignetting: Range = (0.0, 0.15)
+    blur_px: Range = (0.0, 0.5)
+    noise_sigma: Range = (0.004, 0.015)  # read noise, fraction of full scale
+    shot_noise: Range = (0.002, 0.01)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RenderParams":
+        kw = {}
+        for k, v in d.items():
+            if k not in cls.__dataclass_fields__:
+                raise PsdError(f"unknown render setting {k!r}")
+            if k == "palette":
+                v = tuple(tuple(map(float, c)) for c in v)
+            elif isinstance(v, list):
+                v = tuple(v)
+            kw[k] = v
+        return cls(**kw)
+
+
+@dataclass
+class Look:
+    """The randomised look of one scene (recorded in render.json)."""
+
+    light_dir: list[float]
+    light_azimuth_deg: float
+    light_elevation_deg: float
+    light_intensity: float
+    ambient: float
+    shadow_strength: float
+    occlusion_strength: float
+    table_rgb: list[float]
+    exposure: float
+    white_balance: list[float]
+    vignetting: float
+    blur_px: float
+    noise_sigma: float
+    shot_noise: float
+    particle_rgb: np.ndarray = field(repr=False)
+
+
+def draw_look(rng: np.random.Generator, p: RenderParams, n: int) -> Look:
+    u = lambda r: float(rng.uniform(*r))  # noqa: E731
+    az, el = u(p.light_azimuth_deg), u(p.light_elevation_deg)
+    a, e = math.radians(az), math.radians(el)
+    light_dir = [math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)]
+    palette = np.asarray(p.palette, dtype=float)
+    base = palette[rng.integers(len(palette), size=n)]
+    bright = rng.uniform(*p.particle_brightness, size=(n, 1))
+    hue = 1 + rng.uniform(-p.particle_hue_jitter, p.particle_hue_jitter, size=(n, 3))
+    rgb = np.clip(base * bright * hue, 0.02, 1.0)
+    table = np.clip(np.asarray(p.table_rgb) * u(p.table_brightness), 0, 1)
+    wb = 1 + rng.uniform(-p.white_balance_jitter, p.white_balance_jitter, size=3)
+    return Look(
+        light_dir, az, el, u(p.light_intensity), u(p.ambient), u(p.shadow_strength), u(p.occlusion_strength),
+        table.tolist(), u(p.exposure), wb.tolist(), u(p.vignetting), u(p.blur_px), u(p.noise_sigma),
+        u(p.shot_noise), rgb,
+    )
+
+
+def mm_per_px(table_size_mm: float, resolution: int) -> float:
+    return table_size_mm / resolution
+
+
+def face_normals_mesh(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unshared vertices with face normals: crisp facets for angular particles."""
+    tri = v[f].reshape(-1, 3)
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
+    return tri, np.arange(len(tri)), np.repeat(n, 3, axis=0)
+
+
+def smooth_normals_mesh(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Shared vertices with area-weighted vertex normals: smooth, rounded particles."""
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    vn = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(vn, f[:, k], fn)
+    vn /= np.linalg.norm(vn, axis=1, keepdims=True) + 1e-12
+    return v, f.reshape(-1), vn
+
+
+def shade_from_height(height: np.ndarray, px_mm: float, light_dir: list[float], max_height_mm: float) -> np.ndarray:
+    """Cast-shadow map (1 = in shadow) by marching each pixel toward the light over the height map."""
+    lx, ly, lz = light_dir
+    horiz = math.hypot(lx, ly)
+    if horiz < 1e-6 or max_height_mm <= 0:
+        return np.zeros_like(height)
+    # image rows grow towards -y, columns towards +x
+    dc, dr = lx / horiz, -ly / horiz
+    rise_per_px = px_mm * lz / horiz  # height the ray gains per pixel travelled
+    steps = int(min(max_height_mm / rise_per_px + 1, max(height.shape)))
+    pad = steps + 1
+    padded = np.pad(height, pad, mode="constant")
+    h, w = height.shape
+    shadow = np.zeros(height.shape, dtype=bool)
+    for k in range(1, steps + 1):
+        r0 = pad + int(round(k * dr))
+        c0 = pad + int(round(k * dc))
+        shadow |= padded[r0 : r0 + h, c0 : c0 + w] > height + k * rise_per_px + 0.3 * px_mm
+    return shadow.astype(np.float32)
+
+
+def fractal_noise(rng: np.random.Generator, shape: tuple[int, int], scales_px: tuple[float, ...]) -> np.ndarray:
+    out = np.zeros(shape, dtype=np.float32)
+    for s in scales_px:
+        layer = ndimage.gaussian_filter(rng.standard_normal(shape).astype(np.float32), s)
+        out += layer / (layer.std() + 1e-6)
+    return out / len(scales_px)
+
+
+def render_tiny(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams, rng: np.random.Generator):
+    """TinyRenderer backend → (rgb float32 HxWx3 in [0,1] before sensor, ids int32 HxW, height mm, look)."""
+    import pybullet as pb
+
+    n = len(geometry)
+    if n > MAX_PARTICLES_16BIT:
+        raise PsdError(f"{n} particles do not fit a 16-bit mask (max {MAX_PARTICLES_16BIT})")
+    T = float(spec["table_size"])
+    size = p.resolution * p.supersample
+    look = draw_look(rng, p, n)
+    smooth = spec["shape_type"] in ("granule", "ellipsoid")
+    mesh_fn = smooth_normals_mesh if smooth else face_normals_mesh
+
+    cid = pb.connect(pb.DIRECT)
+    try:
+        half = T / 2 * CM
+        table_vs = pb.createVisualShape(
+            pb.GEOM_BOX, halfExtents=[half * 1.5, half * 1.5, 0.5], rgbaColor=[*look.table_rgb, 1], physicsClientId=cid
+        )
+        table = pb.createMultiBody(0, -1, table_vs, basePosition=[0, 0, -0.5], physicsClientId=cid)
+        body_to_label = {table: 0}
+        for i in range(n):
+            v, f = geometry.mesh(i)
+            verts, idx, normals = mesh_fn(v * CM, f)
+            vs = pb.createVisualShape(
+                pb.GEOM_MESH,
+                vertices=verts.tolist(),
+                indices=idx.tolist(),
+                normals=normals.tolist(),
+                rgbaColor=[*look.particle_rgb[i], 1.0],
+                specularColor=[0.05, 0.05, 0.05],
+                physicsClientId=cid,
+            )
+            body = pb.createMultiBody(
+                0, -1, vs, basePosition=(pos_mm[i] * CM).tolist(), baseOrientation=quats[i].tolist(), physicsClientId=cid
+            )
+            body_to_label[body] = i + 1
+
+        H = p.camera_height_mm * CM
+        fov = math.degrees(2 * math.atan(half / H))
+        top = float(np.nanmax(pos_mm[:, 2])) + float(geometry.dims_mm[:, 0].max()) if n else 1.0
+        near, far = H - (top * CM + 1.0), H + 1.0
+        view = pb.computeViewMatrix([0, 0, H], [0, 0, 0], [0, 1, 0], physicsClientId=cid)
+        proj = pb.computeProjectionMatrixFOV(fov, 1.0, near, far, physicsClientId=cid)
+        _, _, rgba, depth, seg = pb.getCameraImage(
+            size,
+            size,
+            view,
+            proj,
+            lightDirection=look.light_dir,
+            lightColor=[1, 1, 1],
+            lightDistance=100,
+            shadow=0,
+            lightAmbientCoeff=look.ambient,
+            lightDiffuseCoeff=look.light_intensity * (1 - look.ambient),
+            lightSpecularCoeff=0.05,
+            renderer=pb.ER_TINY_RENDERER,
+            flags=pb.ER_NO_SEGMENTATION_MASK * 0,
+            physicsClientId=cid,
+        )
+    finally:
+        pb.disconnect(physicsClientId=cid)
+
+    rgb = np.asarray(rgba, dtype=np.float32).reshape(size, size, 4)[..., :3] / 255.0
+    depth = np.asarray(depth, dtype=np.float64).reshape(size, size)
+    seg = np.asarray(seg).reshape(size, size)
+    lut_keys = np.fromiter(body_to_label.keys(), dtype=np.int64)
+    lut = np.zeros(int(lut_keys.max()) + 2, dtype=np.int32)
+    lut[lut_keys] = np.fromiter(body_to_label.values(), dtype=np.int32)
+    ids = np.where(seg >= 0, lut[np.clip(seg, 0, len(lut) - 1)], 0)
+    z_eye = far * near / (far - (far - near) * depth)
+    height_mm = np.clip((H - z_eye) / CM, 0, None).astype(np.float32)
+    return rgb, ids, height_mm, look
+
+
+BACKENDS: dict[str, Callable] = {"tiny": render_tiny}
+
+
+def downsample(a: np.ndarray, s: int) -> np.ndarray:
+    """Box-filter anti-aliasing: mean over s×s blocks."""
+    if s == 1:
+        return a
+    h, w = a.shape[:2]
+    return a.reshape(h // s, s, w // s, s, *a.shape[2:]).mean(axis=(1, 3))
+
+
+def finish_image(
+    rgb: np.ndarray, ids: np.ndarray, height: np.ndarray, look: Look, p: RenderParams, px_mm: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Texture, shadows, contact occlusion, anti-aliasing and the sensor model → (uint8 RGB, uint16 mask)."""
+    s = p.supersample
+    # surface texture: table grain on table pixels, fine mottling on particles
+    tex = fractal_noise(rng, ids.shape, (1.0 * s, 4.0 * s))
+    amp = np.where(ids == 0, p.table_texture, p.surface_detail).astype(np.float32)
+    rgb = rgb * (1 + amp * tex)[..., None]
+    rgb = downsample(rgb, s)
+    hgt = downsample(height, s)
+    # cast shadows and contact / crevice occlusion from the height map
+    shadow = shade_from_height(hgt, px_mm, look.light_dir, float(hgt.max()))
+    shadow = ndimage.gaussian_filter(shadow, 0.8)
+    occl = np.clip((ndimage.gaussian_filter(hgt, 2.5 / px_mm) - hgt) / 3.0, 0, 1)
+    light = (1 - look.shadow_strength * shadow) * (1 - look.occlusion_strength * occl)
+    img = rgb * light[..., None]
+    # camera: exposure, white balance, vignetting, defocus, noise
+    r = p.resolution
+    yy, xx = np.mgrid[0:r, 0:r]
+    rad2 = ((xx - r / 2) ** 2 + (yy - r / 2) ** 2) / (r / 2) ** 2 / 2
+    img = img * look.exposure * np.asarray(look.white_balance, dtype=np.float32) * (1 - look.vignetting * rad2)[..., None]
+    if look.blur_px > 0.05:
+        img = ndimage.gaussian_filter(img, (look.blur_px, look.blur_px, 0))
+    img = np.clip(img, 0, 1)
+    noise = rng.standard_normal(img.shape).astype(np.float32)
+    img = img + noise * np.sqrt(look.noise_sigma**2 + look.shot_noise * img)
+    image = np.clip(np.round(img * 255), 0, 255).astype(np.uint8)
+    # mask: the centre sample of each s×s block, so ids stay exact integers
+    mask = ids[s // 2 :: s, s // 2 :: s].astype(np.uint16)
+    return image, mask
+
+
+def render_scene(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams, entropy: list[int]):
+    """→ (image uint8 HxWx3, mask uint16 HxW, metadata dict)."""
+    if p.backend not in BACKENDS:
+        raise PsdError(f"unknown render backend {p.backend!r}; available: {', '.join(BACKENDS)}")
+    if len(pos_mm) != len(geometry):
+        raise PsdError(f"poses hold {len(pos_mm)} particles but the spec has {len(geometry)}; rerun simulate")
+    rng = rng_for(entropy, "render")
+    px_mm = mm_per_px(float(spec["table_size"]), p.resolution)
+    rgb, ids, height, look = BACKENDS[p.backend](spec, geometry, pos_mm, quats, p, rng)
+    image, mask = finish_image(rgb, ids, height, look, p, px_mm, rng)
+    look_meta = {k: v for k, v in asdict(look).items() if k != "particle_rgb"}
+    meta = {
+        "backend": p.backend,
+        "resolution": p.resolution,
+        "supersample": p.supersample,
+        "mm_per_px": px_mm,
+        "table_size_mm": float(spec["table_size"]),
+        "camera_height_mm": p.camera_height_mm,
+        "image_origin": "row 0 = +y edge of the table, column 0 = -x edge",
+        "look": look_meta,
+    }
+    return image, mask, meta

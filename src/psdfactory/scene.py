@@ -1,0 +1,158 @@
+"""The per-scene stages as file-to-file steps: each reads its inputs from a scene folder,
+calls the pure functions of its module and writes its outputs atomically.
+
+Scene folder ``<results>/<dataset>/scenes/<scene_id>/``:
+  sample   → spec.json, geometry.npz
+  simulate → poses.parquet, simulate.json
+  render   → image.png, mask.png, render.json
+  label    → labels.json, particles.parquet
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import PsdError
+from .io import read_json, read_npz, read_parquet, read_png, write_json, write_npz, write_parquet, write_png
+from .shapes import Geometry
+
+POSE_COLUMNS = ("particle_id", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "settled")
+
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def load_geometry(scene_dir: Path) -> Geometry:
+    return Geometry.from_arrays(read_npz(scene_dir / "geometry.npz"))
+
+
+def load_poses(scene_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    t = read_parquet(scene_dir / "poses.parquet")
+    missing = [c for c in POSE_COLUMNS if c not in t.column_names]
+    if missing:
+        raise PsdError(f"{scene_dir / 'poses.parquet'} lacks columns {missing}; rerun simulate")
+    col = lambda c: t.column(c).to_numpy()  # noqa: E731
+    pos = np.stack([col("x_mm"), col("y_mm"), col("z_mm")], axis=1)
+    quat = np.stack([col("qx"), col("qy"), col("qz"), col("qw")], axis=1)
+    return pos, quat, col("settled")
+
+
+def run_sample(params: dict, scene_dir: Path) -> dict:
+    from .sampling import SampleParams, sample_scene
+
+    t0 = time.perf_counter()
+    spec, geometry = sample_scene(SampleParams.from_dict(params))
+    write_npz(scene_dir / "geometry.npz", **geometry)
+    write_json(scene_dir / "spec.json", spec)  # last: spec.json marks the stage complete
+    log(f"sampled {spec['scene_id']}: {spec['samplesize']} {spec['shape_type']} particles, "
+        f"mean {spec['size_mean']:.2f} mm, sigma {spec['size_sigma']:.2f} mm ({time.perf_counter() - t0:.2f} s)")
+    return spec
+
+
+def run_simulate(params: dict, scene_dir: Path) -> dict:
+    import pyarrow as pa
+
+    from .physics import PhysicsParams, simulate
+
+    spec = read_json(scene_dir / "spec.json")
+    geometry = load_geometry(scene_dir)
+    if len(geometry) != spec["samplesize"]:
+        raise PsdError(f"{scene_dir}: spec.json and geometry.npz disagree on the particle count; rerun sample")
+    xy = np.array([[q["x"], q["y"]] for q in spec["particles"]], dtype=float).reshape(-1, 2)
+    res = simulate(geometry, xy, float(spec["table_size"]), spec["entropy"], PhysicsParams.from_dict(params), log=log)
+    n = len(geometry)
+    table = pa.table(
+        {
+            "particle_id": np.arange(n, dtype=np.int32),
+            "x_mm": res.positions_mm[:, 0],
+            "y_mm": res.positions_mm[:, 1],
+            "z_mm": res.positions_mm[:, 2],
+            "qx": res.quaternions[:, 0],
+            "qy": res.quaternions[:, 1],
+            "qz": res.quaternions[:, 2],
+            "qw": res.quaternions[:, 3],
+            "settled": res.settled,
+        }
+    )
+    write_parquet(scene_dir / "poses.parquet", table)
+    write_json(scene_dir / "simulate.json", {"scene_id": spec["scene_id"], **res.quality})
+    q = res.quality
+    log(f"simulated {spec['scene_id']}: settled {q['settled_fraction']:.3f}, worst penetration "
+        f"{q['worst_penetration_mm']:.2f} mm, attempt {res.attempt}, {q['wall_s']:.1f} s")
+    return q
+
+
+def run_render(params: dict, scene_dir: Path) -> dict:
+    from .render import RenderParams, render_scene
+
+    t0 = time.perf_counter()
+    spec = read_json(scene_dir / "spec.json")
+    geometry = load_geometry(scene_dir)
+    pos, quat, _ = load_poses(scene_dir)
+    image, mask, meta = render_scene(spec, geometry, pos, quat, RenderParams.from_dict(params), spec["entropy"])
+    write_png(scene_dir / "image.png", image)
+    write_png(scene_dir / "mask.png", mask)
+    write_json(scene_dir / "render.json", {"scene_id": spec["scene_id"], **meta})
+    log(f"rendered {spec['scene_id']}: {meta['resolution']} px, {meta['mm_per_px']:.4f} mm/px, "
+        f"{len(np.unique(mask)) - 1} particles visible ({time.perf_counter() - t0:.2f} s)")
+    return meta
+
+
+def run_label(params: dict, scene_dir: Path) -> dict:
+    import pyarrow as pa
+
+    from .labels import LabelParams, scene_labels, visible_pixels
+
+    spec = read_json(scene_dir / "spec.json")
+    sim = read_json(scene_dir / "simulate.json")
+    rend = read_json(scene_dir / "render.json")
+    geometry = load_geometry(scene_dir)
+    pos, quat, settled = load_poses(scene_dir)
+    mask = read_png(scene_dir / "mask.png")
+    if mask.ndim != 2 or mask.shape != (rend["resolution"], rend["resolution"]):
+        raise PsdError(f"{scene_dir / 'mask.png'} is not a {rend['resolution']}² 16-bit mask; rerun render")
+    n = len(geometry)
+    vis = visible_pixels(mask, n)
+    labels = scene_labels(geometry.size_mm, geometry.volume_mm3, vis, mask.size, tuple(spec["size_bounds"]), LabelParams.from_dict(params))
+    record = {
+        "scene_id": spec["scene_id"],
+        "dataset": spec["dataset"],
+        "index": spec["index"],
+        "shape_type": spec["shape_type"],
+        "size_mean": spec["size_mean"],
+        "size_sigma": spec["size_sigma"],
+        "table_size_mm": float(spec["table_size"]),
+        "config_hash": spec["config_hash"],
+        "mm_per_px": rend["mm_per_px"],
+        "resolution": rend["resolution"],
+        "render_backend": rend["backend"],
+        "settled_fraction": sim["settled_fraction"],
+        "worst_penetration_mm": sim["worst_penetration_mm"],
+        "sim_attempts": sim["attempt"] + 1,
+        **labels,
+    }
+    particles = pa.table(
+        {
+            "scene_id": pa.array([spec["scene_id"]] * n, pa.string()),
+            "particle_id": np.arange(n, dtype=np.int32),
+            "size_mm": geometry.size_mm,
+            "volume_mm3": geometry.volume_mm3,
+            "x_mm": pos[:, 0],
+            "y_mm": pos[:, 1],
+            "z_mm": pos[:, 2],
+            "visible_px": vis.astype(np.int64),
+            "dim_long_mm": geometry.dims_mm[:, 0],
+            "dim_short_mm": geometry.dims_mm[:, 2],
+            "settled": settled,
+        }
+    )
+    write_parquet(scene_dir / "particles.parquet", particles)
+    write_json(scene_dir / "labels.json", record)
+    log(f"labelled {spec['scene_id']}: d10/d50/d90 = {record['d10_mm']:.2f}/{record['d50_mm']:.2f}/"
+        f"{record['d90_mm']:.2f} mm (number), {record['d10_v_mm']:.2f}/{record['d50_v_mm']:.2f}/"
+        f"{record['d90_v_mm']:.2f} mm (volume); {record['n_visible']}/{n} visible")
+    return record

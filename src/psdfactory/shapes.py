@@ -1,0 +1,238 @@
+"""Particle shape families.
+
+Every particle gets its own mesh (vertices in mm, centred on its centre of volume, and
+outward-facing triangles). Its nominal size is its sieve size: the intermediate of its three
+principal dimensions. Its volume is the exact volume of the mesh.
+
+Families:
+- ``crushed_rock``: convex hull of 20-40 random points on a perturbed ellipsoid (angular, unique).
+- ``granule``: a slightly bumpy, near-spherical prill (fertiliser granules).
+- ``ellipsoid``: a smooth ellipsoid with random axis ratios.
+- ``mesh``: the user's own mesh files (OBJ/STL/PLY/GLB, loaded with trimesh).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+from . import PsdError
+
+FAMILIES = ("crushed_rock", "granule", "ellipsoid", "mesh")
+MAX_MESH_FACES = 5000
+
+
+@dataclass(frozen=True)
+class ShapeParams:
+    """Knobs of a shape family (ranges are [lo, hi], drawn per particle)."""
+
+    aspect_b: tuple[float, float] = (0.6, 1.0)  # intermediate / long axis
+    aspect_c: tuple[float, float] = (0.4, 0.8)  # short / long axis
+    n_points: tuple[int, int] = (20, 40)  # crushed_rock hull points
+    roughness: float = 0.15  # relative radial noise
+    mesh_files: tuple[str, ...] = ()
+
+    @classmethod
+    def for_family(cls, family: str, overrides: dict | None = None) -> "ShapeParams":
+        defaults = {
+            "crushed_rock": {},
+            "granule": {"aspect_b": (0.9, 1.0), "aspect_c": (0.85, 0.95), "roughness": 0.03},
+            "ellipsoid": {"aspect_b": (0.5, 0.9), "aspect_c": (0.4, 0.8), "roughness": 0.0},
+            "mesh": {},
+        }
+        if family not in defaults:
+            raise PsdError(f"unknown particle shape {family!r}; choose one of {', '.join(FAMILIES)}")
+        kw = dict(defaults[family])
+        for k, v in (overrides or {}).items():
+            kw[k] = tuple(v) if isinstance(v, list) else v
+        return cls(**kw)
+
+
+@dataclass
+class Particle:
+    vertices: np.ndarray  # (V, 3) float64, mm, centred on the centre of volume
+    faces: np.ndarray  # (F, 3) int32, counter-clockwise seen from outside
+    size_mm: float  # sieve size = intermediate principal dimension
+    volume_mm3: float
+    dims_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))  # long, intermediate, short
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """n nearly evenly spread unit vectors."""
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5**0.5) * i
+    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
+
+
+def random_directions(rng: np.random.Generator, n: int) -> np.ndarray:
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def volume_and_centroid(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, np.ndarray]:
+    """Exact volume and centre of volume of a closed, outward-oriented triangle mesh."""
+    a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
+    six_v = np.einsum("ij,ij->i", a, np.cross(b, c))  # signed tetrahedra with the origin
+    vol = six_v.sum() / 6.0
+    if abs(vol) < 1e-12:
+        raise PsdError("degenerate particle mesh (zero volume)")
+    centroid = ((a + b + c) * six_v[:, None]).sum(axis=0) / (24.0 * vol)
+    return float(vol), centroid
+
+
+def convex_mesh(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Convex hull as (vertices, outward faces) with only the hull's own vertices."""
+    try:
+        hull = ConvexHull(points)
+    except QhullError as e:
+        raise PsdError(f"could not build a convex particle from {len(points)} points: {e}") from None
+    used = hull.vertices
+    remap = np.full(len(points), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    verts = points[used]
+    faces = remap[hull.simplices]
+    # Qhull does not orient simplices; make them face away from the hull's interior.
+    inner = verts.mean(axis=0)
+    a, b, c = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
+    normal = np.cross(b - a, c - a)
+    flip = np.einsum("ij,ij->i", normal, (a + b + c) / 3 - inner) < 0
+    faces[flip] = faces[flip][:, ::-1]
+    return verts, faces.astype(np.int32)
+
+
+def principal_dims(vertices: np.ndarray) -> np.ndarray:
+    """Extents along the principal axes, sorted long → short."""
+    centred = vertices - vertices.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    proj = centred @ vt.T
+    return np.sort(proj.max(axis=0) - proj.min(axis=0))[::-1]
+
+
+def finish(vertices: np.ndarray, faces: np.ndarray, size_mm: float) -> Particle:
+    """Scale a unit shape so its sieve size is `size_mm`; centre it on its centre of volume."""
+    dims = principal_dims(vertices)
+    scale = size_mm / dims[1]
+    v = vertices * scale
+    vol, centroid = volume_and_centroid(v, faces)
+    return Particle(v - centroid, faces.astype(np.int32), float(size_mm), vol, dims * scale)
+
+
+def _axes(rng: np.random.Generator, p: ShapeParams) -> np.ndarray:
+    return np.array([1.0, rng.uniform(*p.aspect_b), rng.uniform(*p.aspect_c)])
+
+
+def make_crushed_rock(rng: np.random.Generator, size_mm: float, p: ShapeParams) -> Particle:
+    n = int(rng.integers(p.n_points[0], p.n_points[1] + 1))
+    dirs = random_directions(rng, n)
+    pts = dirs * _axes(rng, p) * (1 + rng.uniform(-p.roughness, p.roughness, size=(n, 1)))
+    return finish(*convex_mesh(pts), size_mm)
+
+
+_SPHERE = fibonacci_sphere(92)
+
+
+def make_granule(rng: np.random.Generator, size_mm: float, p: ShapeParams) -> Particle:
+    bumps = 1 + rng.uniform(-p.roughness, p.roughness, size=(len(_SPHERE), 1))
+    return finish(*convex_mesh(_SPHERE * _axes(rng, p) * bumps), size_mm)
+
+
+def make_ellipsoid(rng: np.random.Generator, size_mm: float, p: ShapeParams) -> Particle:
+    return finish(*convex_mesh(_SPHERE * _axes(rng, p)), size_mm)
+
+
+@lru_cache(maxsize=64)
+def load_mesh(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """A user's mesh file as (vertices, faces), closed and outward-facing."""
+    import trimesh
+
+    file = Path(path)
+    if not file.is_file():
+        raise PsdError(f"particle mesh file not found: {path}")
+    try:
+        mesh = trimesh.load(file, force="mesh")
+    except Exception as e:
+        raise PsdError(f"could not read particle mesh {path}: {e}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise PsdError(f"particle mesh {path} holds no triangles")
+    if len(mesh.faces) > MAX_MESH_FACES:
+        raise PsdError(
+            f"particle mesh {path} has {len(mesh.faces)} faces; decimate it to at most "
+            f"{MAX_MESH_FACES} (every particle of every scene stores its own copy)"
+        )
+    if not mesh.is_watertight:
+        # An open mesh has no volume: use its convex hull, which is what the physics sees anyway.
+        return convex_mesh(np.asarray(mesh.vertices, dtype=float))
+    mesh.fix_normals()
+    return np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int32)
+
+
+def make_from_mesh(rng: np.random.Generator, size_mm: float, p: ShapeParams) -> Particle:
+    if not p.mesh_files:
+        raise PsdError("shape 'mesh' needs shape_params.mesh_files: a list of OBJ/STL/PLY/GLB files")
+    verts, faces = load_mesh(p.mesh_files[int(rng.integers(len(p.mesh_files)))])
+    return finish(verts, faces, size_mm)
+
+
+MAKERS: dict[str, Callable[[np.random.Generator, float, ShapeParams], Particle]] = {
+    "crushed_rock": make_crushed_rock,
+    "granule": make_granule,
+    "ellipsoid": make_ellipsoid,
+    "mesh": make_from_mesh,
+}
+
+
+def make_particles(family: str, sizes_mm: np.ndarray, rng: np.random.Generator, params: ShapeParams) -> list[Particle]:
+    maker = MAKERS[family]
+    return [maker(rng, float(s), params) for s in sizes_mm]
+
+
+def pack(particles: list[Particle]) -> dict[str, np.ndarray]:
+    """Concatenate per-particle meshes into flat arrays with offsets (for one .npz per scene)."""
+    nv = np.array([len(p.vertices) for p in particles])
+    nf = np.array([len(p.faces) for p in particles])
+    return {
+        "vertices": np.concatenate([p.vertices for p in particles]).astype(np.float32),
+        "faces": np.concatenate([p.faces for p in particles]).astype(np.int32),
+        "vert_offsets": np.concatenate([[0], np.cumsum(nv)]).astype(np.int64),
+        "face_offsets": np.concatenate([[0], np.cumsum(nf)]).astype(np.int64),
+        "size_mm": np.array([p.size_mm for p in particles]),
+        "volume_mm3": np.array([p.volume_mm3 for p in particles]),
+        "dims_mm": np.array([p.dims_mm for p in particles]).reshape(-1, 3),
+    }
+
+
+@dataclass
+class Geometry:
+    """The packed meshes of one scene."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    vert_offsets: np.ndarray
+    face_offsets: np.ndarray
+    size_mm: np.ndarray
+    volume_mm3: np.ndarray
+    dims_mm: np.ndarray
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "Geometry":
+        try:
+            return cls(**{k: arrays[k] for k in cls.__dataclass_fields__})
+        except KeyError as e:
+            raise PsdError(f"geometry file lacks the array {e}; rerun the sample job") from None
+
+    def __len__(self) -> int:
+        return len(self.size_mm)
+
+    def mesh(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        v = self.vertices[self.vert_offsets[i] : self.vert_offsets[i + 1]].astype(np.float64)
+        f = self.faces[self.face_offsets[i] : self.face_offsets[i + 1]]
+        return v, f
+
+    def bounding_radius(self) -> np.ndarray:
+        return np.array([np.linalg.norm(self.mesh(i)[0], axis=1).max() for i in range(len(self))])
