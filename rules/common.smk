@@ -18,10 +18,10 @@ try:
 except PsdError as e:
     raise WorkflowError(str(e)) from None
 
-# Jobs call the `psdfactory` CLI; when Snakemake runs from an unactivated virtualenv, use
-# the one installed beside the Python that runs Snakemake.
+# The jobs call the `psdfactory` CLI. When Snakemake runs from an unactivated virtualenv,
+# use the one installed beside the Python that runs Snakemake.
 if shutil.which("psdfactory") is None:
-    os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")
+    shell.prefix(f"set -euo pipefail; export PATH={os.path.dirname(sys.executable)!r}:\"$PATH\"; ")
 
 RESULTS = config["results"].rstrip("/")
 DATASETS = list(config["datasets"])
@@ -40,6 +40,13 @@ def scene_path(name):
 
 def log_path(stage):
     return f"{RESULTS}/{{dataset}}/logs/{stage}/{{scene}}.log"
+
+
+def results_root(path, depth):
+    """The results root above a file `depth` folders below it (for relative image paths)."""
+    for _ in range(depth):
+        path = os.path.dirname(path)
+    return path or "."
 
 
 def as_json(obj):

@@ -8,7 +8,7 @@ rule manifest_shard:
         particles=f"{RESULTS}/{{dataset}}/manifest/particles/shard-{{shard}}.parquet",
     params:
         stage=manifest_params,
-        results=RESULTS,
+        results=lambda wildcards, output: results_root(output.scenes, 4),
         scene_dirs=lambda wildcards, input: [os.path.dirname(p) for p in input.labels],
     log:
         f"{RESULTS}/{{dataset}}/logs/manifest/shard-{{shard}}.log",
@@ -31,7 +31,7 @@ rule contact_sheet:
             subcategory="{dataset}",
         ),
     params:
-        results=RESULTS,
+        results=lambda wildcards, output: results_root(output[0], 2),
         n=config["show"]["n_scenes"],
     log:
         f"{RESULTS}/{{dataset}}/logs/contact_sheet.log",

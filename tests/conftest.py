@@ -1,0 +1,42 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from psdfactory import config as psd_config
+from psdfactory.scene import run_label, run_render, run_sample, run_simulate
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def tiny_config(**dataset_overrides) -> dict:
+    """A validated config with one tiny dataset (fast physics and rendering)."""
+    ds = {
+        "n_scenes": 3,
+        "shard_size": 2,
+        "table_size": 60,
+        "count": [30, 40],
+        "size": {"mean": [5, 8], "sigma": [2, 3], "bounds": [1, 12]},
+    }
+    ds.update(dataset_overrides)
+    cfg = {"seed": 7, "datasets": {"tiny": ds}, "render": {"resolution": 64}}
+    return psd_config.validate(cfg)
+
+
+def make_scene(cfg: dict, scene_dir: Path, dataset: str = "tiny", index: int = 0) -> Path:
+    run_sample(psd_config.sample_params(cfg, dataset, index), scene_dir)
+    run_simulate(psd_config.simulate_params(cfg), scene_dir)
+    run_render(psd_config.render_params(cfg), scene_dir)
+    run_label(psd_config.label_params(cfg), scene_dir)
+    return scene_dir
+
+
+@pytest.fixture(scope="session")
+def tiny_results(tmp_path_factory) -> tuple[dict, Path]:
+    """Three fully processed tiny scenes under <root>/tiny/scenes/."""
+    cfg = tiny_config()
+    root = tmp_path_factory.mktemp("results")
+    for i in range(3):
+        make_scene(cfg, root / "tiny" / "scenes" / f"tiny-{i:06d}", index=i)
+    return cfg, root

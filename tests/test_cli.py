@@ -1,0 +1,70 @@
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from psdfactory import config as psd_config
+from psdfactory.cli import main
+
+pytestmark = pytest.mark.slow
+
+
+def _label_args(cfg, d):
+    return ["label", "--params", json.dumps(psd_config.label_params(cfg)), str(d)]
+
+
+def test_corrupt_mask_gives_clear_error(tiny_results, tmp_path, capsys):
+    cfg, root = tiny_results
+    d = tmp_path / "scene"
+    shutil.copytree(root / "tiny" / "scenes" / "tiny-000000", d)
+    (d / "mask.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    assert main(_label_args(cfg, d)) == 2
+    err = capsys.readouterr().err
+    assert "mask.png is not a readable image" in err and "Traceback" not in err
+    assert not (d / "labels.json.tmp").exists()
+
+
+def test_missing_input_gives_clear_error(tiny_results, tmp_path, capsys):
+    cfg, root = tiny_results
+    d = tmp_path / "scene"
+    shutil.copytree(root / "tiny" / "scenes" / "tiny-000000", d)
+    (d / "poses.parquet").unlink()
+    (d / "labels.json").unlink()
+    assert main(_label_args(cfg, d)) == 2
+    assert "missing file" in capsys.readouterr().err and not (d / "labels.json").exists()
+
+
+def test_bad_params_json(tmp_path, capsys):
+    assert main(["sample", "--params", "{not json", str(tmp_path)]) == 2
+    assert "--params is not valid JSON" in capsys.readouterr().err
+
+
+def test_cli_entry_point_runs_without_torch():
+    exe = Path(sys.executable).with_name("psdfactory")
+    r = subprocess.run(
+        [sys.executable, "-X", "importtime", "-c", "import psdfactory.cli, psdfactory.scene"],
+        capture_output=True, text=True,
+    )
+    assert "torch" not in r.stderr
+    r = subprocess.run([str(exe), "--version"], capture_output=True, text=True)
+    assert r.returncode == 0 and "psdfactory" in r.stdout
+
+
+def test_show_contact_sheet(tiny_results, tmp_path):
+    from psdfactory.manifest import write_shard
+    from psdfactory.show import contact_sheet
+
+    _, root = tiny_results
+    res = tmp_path / "res"
+    shutil.copytree(root, res)
+    dirs = sorted((res / "tiny" / "scenes").iterdir())
+    m = res / "tiny" / "manifest"
+    write_shard(dirs, res, {"train": 1.0}, m / "scenes" / "shard-00000.parquet", m / "particles" / "shard-00000.parquet")
+    out = contact_sheet(res, "tiny", tmp_path / "sheet.png", n=2)
+    from PIL import Image
+
+    with Image.open(out) as im:
+        assert im.size[0] > 300 and im.size[1] > 300

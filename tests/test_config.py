@@ -1,0 +1,87 @@
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from psdfactory import PsdError
+from psdfactory import config as psd_config
+from psdfactory.config import load_config
+
+from .conftest import REPO, tiny_config
+
+
+def test_default_and_paper_configs_are_valid():
+    cfg = load_config(REPO / "config" / "config.yaml")
+    assert cfg["physics"]["timestep_s"] == pytest.approx(1 / 240)  # a default filled in
+    assert cfg["datasets"]["train"]["placement"]["candidates"] == 4
+    paper = load_config(REPO / "config" / "paper.yaml")
+    assert paper["datasets"]["train"]["count"] == [700, 1000]
+    assert paper["render"]["resolution"] == 512
+
+
+@pytest.mark.parametrize(
+    "mutate,expect",
+    [
+        (lambda c: c["datasets"]["train"].update(count=[300, 100]), "datasets.train.count"),
+        (lambda c: c["datasets"]["train"].update(n_scene=5), "n_scene"),
+        (lambda c: c["datasets"]["train"].update(n_scenes="many"), "datasets.train.n_scenes"),
+        (lambda c: c["datasets"]["train"]["size"].update(bounds=[20, 0.1]), "datasets.train.size.bounds"),
+        (lambda c: c["datasets"]["train"].update(shape="cube"), "datasets.train.shape"),
+        (lambda c: c["render"].update(backend="povray"), "render.backend"),
+        (lambda c: c["datasets"]["train"].update(table_size=30), "do not fit"),
+        (lambda c: c["datasets"]["train"].update(shape="mesh"), "mesh_files"),
+        (lambda c: c.update(datasets={"bad-name": {"n_scenes": 1}}), "bad-name"),
+    ],
+)
+def test_bad_config_names_the_key(tmp_path, mutate, expect):
+    cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    mutate(cfg)
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    with pytest.raises(PsdError, match="invalid config") as e:
+        load_config(path)
+    assert expect in str(e.value)
+
+
+def test_unreadable_config(tmp_path):
+    with pytest.raises(PsdError, match="not found"):
+        load_config(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("datasets: [unclosed\n")
+    with pytest.raises(PsdError, match="not valid YAML"):
+        load_config(bad)
+
+
+def test_stage_params_only_hold_their_slice():
+    a = tiny_config()
+    b = tiny_config()
+    b["render"]["resolution"] = 128
+    b["physics"]["friction"] = 0.9
+    b["datasets"]["tiny"]["split"] = {"train": 1.0}
+    assert psd_config.sample_params(a, "tiny", 0) == psd_config.sample_params(b, "tiny", 0)
+    assert psd_config.label_params(a) == psd_config.label_params(b)
+    assert psd_config.render_params(a) != psd_config.render_params(b)
+    assert psd_config.simulate_params(a) != psd_config.simulate_params(b)
+    assert psd_config.manifest_params(a, "tiny") != psd_config.manifest_params(b, "tiny")
+
+
+def test_shards():
+    cfg = tiny_config(n_scenes=5, shard_size=2)
+    assert psd_config.n_shards(cfg, "tiny") == 3
+    assert list(psd_config.shard_indices(cfg, "tiny", 2)) == [4]
+
+
+def test_snakemake_refuses_bad_config_before_any_job(tmp_path):
+    cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    cfg["datasets"]["train"]["size"]["sigma"] = [8, 6]
+    cfg["results"] = str(tmp_path / "results")
+    path = tmp_path / "broken.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    snakemake = Path(sys.executable).with_name("snakemake")
+    r = subprocess.run([str(snakemake), "-n", "--configfile", str(path)], cwd=REPO, capture_output=True, text=True)
+    assert r.returncode != 0
+    out = r.stdout + r.stderr
+    assert "datasets.train.size.sigma" in out and "lo <= hi" in out
+    assert not (tmp_path / "results").exists()

@@ -1,0 +1,63 @@
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from psdfactory import PsdError
+from psdfactory.manifest import SCENE_SCHEMA, assign_split, build_shard, write_shard
+
+REQUIRED_SCENE = [
+    "scene_id", "dataset", "split", "image_path", "mask_path", "mm_per_px", "n_particles", "n_visible",
+    "d10_mm", "d50_mm", "d90_mm", "d10_v_mm", "d50_v_mm", "d90_v_mm",
+]
+REQUIRED_PARTICLE = ["scene_id", "particle_id", "size_mm", "volume_mm3", "x_mm", "y_mm", "z_mm", "visible_px"]
+
+
+def test_split_is_deterministic_and_follows_fractions():
+    fr = {"train": 0.7, "val": 0.2, "test": 0.1}
+    splits = [assign_split([1, 2, i], fr) for i in range(5000)]
+    assert splits == [assign_split([1, 2, i], fr) for i in range(5000)]
+    counts = {s: splits.count(s) / 5000 for s in fr}
+    for s, f in fr.items():
+        assert abs(counts[s] - f) < 0.03
+    assert assign_split([1, 2, 3], {"test": 1.0}) == "test"
+
+
+@pytest.mark.slow
+def test_manifest_schema_and_paths(tiny_results, tmp_path):
+    _, root = tiny_results
+    dirs = sorted((root / "tiny" / "scenes").iterdir())
+    out_s, out_p = tmp_path / "scenes" / "shard-00000.parquet", tmp_path / "particles" / "shard-00000.parquet"
+    write_shard(dirs, root, {"train": 1.0}, out_s, out_p)
+    scenes, parts = pq.read_table(out_s), pq.read_table(out_p)
+    assert scenes.schema == SCENE_SCHEMA
+    assert set(REQUIRED_SCENE) <= set(scenes.column_names)
+    assert set(REQUIRED_PARTICLE) <= set(parts.column_names)
+    assert scenes.num_rows == 3
+    assert parts.num_rows == sum(scenes.column("n_particles").to_pylist())
+    for row in scenes.to_pylist():
+        assert not row["image_path"].startswith("/")
+        assert (root / row["image_path"]).is_file() and (root / row["mask_path"]).is_file()
+        assert row["d10_mm"] <= row["d50_mm"] <= row["d90_mm"]
+        assert row["split"] == "train"
+        sub = parts.filter(np.array(parts.column("scene_id").to_pylist()) == row["scene_id"])
+        assert (np.array(sub.column("visible_px")) > 0).sum() == row["n_visible"]
+        sizes = np.array(sub.column("size_mm"))
+        assert row["d50_mm"] == pytest.approx(np.percentile(sizes, 50, method="hazen"))
+
+
+@pytest.mark.slow
+def test_labels_are_reproducible(tiny_results, tmp_path):
+    from psdfactory.io import read_json
+
+    from .conftest import make_scene
+
+    cfg, root = tiny_results
+    again = make_scene(cfg, tmp_path / "tiny-000000", index=0)
+    a = read_json(root / "tiny" / "scenes" / "tiny-000000" / "labels.json")
+    b = read_json(again / "labels.json")
+    assert a == b
+
+
+def test_missing_scene_files_are_named(tmp_path):
+    with pytest.raises(PsdError, match="missing file"):
+        build_shard([tmp_path / "nope"], tmp_path, {"train": 1.0})

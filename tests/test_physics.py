@@ -1,0 +1,89 @@
+import numpy as np
+import pytest
+
+from psdfactory import PsdError
+from psdfactory import config as psd_config
+from psdfactory.physics import (
+    PhysicsParams,
+    QualityBounds,
+    quality_figures,
+    quality_problems,
+    quat_to_matrix,
+    random_quaternions,
+    simulate,
+    spawn_heights,
+)
+from psdfactory.sampling import SampleParams, sample_scene
+from psdfactory.shapes import Geometry
+
+from .conftest import tiny_config
+
+
+def _scene(index=0, **over):
+    cfg = tiny_config(**over)
+    spec, geo = sample_scene(SampleParams.from_dict(psd_config.sample_params(cfg, "tiny", index)))
+    xy = np.array([[p["x"], p["y"]] for p in spec["particles"]])
+    return cfg, spec, Geometry.from_arrays(geo), xy
+
+
+def test_quaternions_are_rotations():
+    q = random_quaternions(np.random.default_rng(0), 50)
+    r = quat_to_matrix(q)
+    np.testing.assert_allclose(r @ np.transpose(r, (0, 2, 1)), np.broadcast_to(np.eye(3), r.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(r), 1.0)
+
+
+def test_spawn_heights_do_not_overlap_in_columns():
+    _, spec, geo, xy = _scene()
+    rots = quat_to_matrix(random_quaternions(np.random.default_rng(0), len(geo)))
+    z = spawn_heights(geo, xy, rots, 60.0, gap=0.5)
+    lows = np.array([(geo.mesh(i)[0] @ rots[i].T)[:, 2].min() for i in range(len(geo))])
+    assert (z + lows >= 0.5 - 1e-9).all()  # every particle starts above the floor
+
+
+@pytest.mark.slow
+def test_settled_bed_is_physical_and_deterministic():
+    cfg, spec, geo, xy = _scene()
+    p = PhysicsParams.from_dict(psd_config.simulate_params(cfg))
+    a = simulate(geo, xy, 60.0, spec["entropy"], p, log=lambda m: None)
+    b = simulate(geo, xy, 60.0, spec["entropy"], p, log=lambda m: None)
+    np.testing.assert_array_equal(a.positions_mm, b.positions_mm)
+    np.testing.assert_array_equal(a.quaternions, b.quaternions)
+    rots = quat_to_matrix(a.quaternions)
+    for i in range(len(geo)):
+        v = geo.mesh(i)[0] @ rots[i].T + a.positions_mm[i]
+        assert v[:, 2].min() > -p.quality.tolerance_mm, f"particle {i} sank through the floor"
+        assert np.abs(v[:, :2]).max() < 30 + p.quality.tolerance_mm, f"particle {i} left the table"
+    # they came to rest on the table, not in the air: the bed is a few particles thick at most
+    assert a.positions_mm[:, 2].max() < 3 * geo.dims_mm[:, 0].max()
+    assert a.quality["settled_fraction"] >= 0.95
+    assert a.quality["worst_penetration_mm"] < 1.0
+
+
+def test_quality_figures_flag_bad_poses():
+    _, spec, geo, xy = _scene()
+    n = len(geo)
+    pos = np.column_stack([xy, np.full(n, 20.0)])
+    quat = np.tile([0, 0, 0, 1.0], (n, 1))
+    pos[0, 2] = -5.0  # sunk through the floor
+    pos[1, 0] = 40.0  # beyond the wall at x = 30
+    q = quality_figures(geo, pos, quat, np.ones(n, bool), min_contact_mm=-2.0, table_size=60.0, tol=0.5)
+    assert q["below_floor"] == 1 and q["off_table"] == 1 and q["worst_penetration_mm"] == 2.0
+    problems = quality_problems(q, QualityBounds())
+    assert len(problems) == 3
+    pos[2, 2] = np.nan
+    q = quality_figures(geo, pos, quat, np.ones(n, bool), 0.0, 60.0, 0.5)
+    assert any("blew up" in s for s in quality_problems(q, QualityBounds()))
+
+
+@pytest.mark.slow
+def test_scene_failing_quality_is_retried_then_fails_loudly():
+    cfg, spec, geo, xy = _scene(count=[30, 30])
+    phys = psd_config.simulate_params(cfg)
+    phys.update(max_time_s=0.05, retries=1)  # far too short to settle
+    phys["quality"]["min_settled_fraction"] = 0.99
+    logs = []
+    with pytest.raises(PsdError, match="after 2 attempts") as e:
+        simulate(geo, xy, 60.0, spec["entropy"], PhysicsParams.from_dict(phys), log=logs.append)
+    assert "settled fraction" in str(e.value)
+    assert sum("attempt" in m for m in logs) == 2

@@ -1,0 +1,81 @@
+import json
+
+import numpy as np
+import pytest
+
+from psdfactory import PsdError
+from psdfactory.io import read_json, read_png
+from psdfactory.render import RenderParams, downsample, shade_from_height
+from psdfactory.scene import load_poses
+
+pytestmark = pytest.mark.slow
+
+
+def test_image_and_mask_files(tiny_results):
+    cfg, root = tiny_results
+    d = root / "tiny" / "scenes" / "tiny-000000"
+    img, mask = read_png(d / "image.png"), read_png(d / "mask.png")
+    assert img.shape == (64, 64, 3) and img.dtype == np.uint8
+    assert mask.shape == (64, 64) and mask.dtype == np.uint16
+    meta = read_json(d / "render.json")
+    assert meta["mm_per_px"] == pytest.approx(60 / 64)
+    # the rendered image is not flat: particles differ from the table
+    assert img[mask > 0].mean() != pytest.approx(img[mask == 0].mean(), abs=3)
+
+
+def test_mask_ids_are_particle_ids_at_their_positions(tiny_results):
+    _, root = tiny_results
+    d = root / "tiny" / "scenes" / "tiny-000001"
+    spec = read_json(d / "spec.json")
+    mask = read_png(d / "mask.png").astype(int)
+    pos, _, _ = load_poses(d)
+    n = spec["samplesize"]
+    assert mask.max() <= n and mask.min() == 0
+    px = read_json(d / "render.json")["mm_per_px"]
+    rows, cols = np.indices(mask.shape)
+    checked = 0
+    for pid in range(n):
+        sel = mask == pid + 1
+        if sel.sum() < 12:
+            continue
+        x = (cols[sel].mean() + 0.5) * px - 30
+        y = 30 - (rows[sel].mean() + 0.5) * px
+        size = spec["particles"][pid]["size"]
+        # the visible part of particle k lies around particle k's settled centre
+        assert np.hypot(x - pos[pid, 0], y - pos[pid, 1]) < size + 2 * px, f"mask id {pid + 1} is not particle {pid}"
+        checked += 1
+    assert checked >= 5
+
+
+def test_render_is_deterministic(tiny_results, tmp_path):
+    import shutil
+
+    from psdfactory import config as psd_config
+    from psdfactory.scene import run_render
+
+    cfg, root = tiny_results
+    src = root / "tiny" / "scenes" / "tiny-000002"
+    dst = tmp_path / "copy"
+    shutil.copytree(src, dst)
+    run_render(psd_config.render_params(cfg), dst)
+    np.testing.assert_array_equal(read_png(src / "image.png"), read_png(dst / "image.png"))
+    np.testing.assert_array_equal(read_png(src / "mask.png"), read_png(dst / "mask.png"))
+
+
+def test_downsample_is_box_filter():
+    a = np.arange(16, dtype=float).reshape(4, 4)
+    np.testing.assert_allclose(downsample(a, 2), [[2.5, 4.5], [10.5, 12.5]])
+
+
+def test_shadow_falls_away_from_light():
+    h = np.zeros((21, 21))
+    h[10, 10] = 10.0  # a 10 mm post in the middle
+    light_from_plus_x = [np.cos(np.radians(45)), 0.0, np.sin(np.radians(45))]
+    s = shade_from_height(h, 1.0, light_from_plus_x, 10.0)
+    assert s[10, 5] == 1 and s[10, 15] == 0  # shadow on the -x side only
+    assert s[5, 10] == 0
+
+
+def test_unknown_render_setting():
+    with pytest.raises(PsdError, match="unknown render setting"):
+        RenderParams.from_dict({"resolutoin": 64})

@@ -1,0 +1,83 @@
+import numpy as np
+import pytest
+
+from psdfactory import PsdError
+from psdfactory.shapes import (
+    Geometry,
+    ShapeParams,
+    convex_mesh,
+    make_particles,
+    pack,
+    principal_dims,
+    volume_and_centroid,
+)
+
+
+def test_volume_and_centroid_of_unit_cube():
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
+    v, f = convex_mesh(corners)
+    vol, c = volume_and_centroid(v, f)
+    assert vol == pytest.approx(1.0)
+    np.testing.assert_allclose(c, [0.5, 0.5, 0.5], atol=1e-12)
+
+
+@pytest.mark.parametrize("family", ["crushed_rock", "granule", "ellipsoid"])
+def test_size_is_intermediate_dimension_and_volume_is_exact(family):
+    rng = np.random.default_rng(1)
+    sizes = np.array([2.0, 7.5, 15.0])
+    parts = make_particles(family, sizes, rng, ShapeParams.for_family(family))
+    for p, s in zip(parts, sizes):
+        dims = principal_dims(p.vertices)
+        assert dims[1] == pytest.approx(s, rel=1e-9)
+        assert dims[0] >= dims[1] >= dims[2] > 0
+        vol, centroid = volume_and_centroid(p.vertices, p.faces)
+        assert vol == pytest.approx(p.volume_mm3) and vol > 0
+        np.testing.assert_allclose(centroid, 0, atol=1e-9 * s)
+        # a convex body lies inside its bounding box and fills a good part of it
+        assert 0.3 * dims.prod() < vol < dims.prod()
+
+
+def test_ellipsoid_volume_close_to_analytic():
+    p = make_particles("ellipsoid", np.array([10.0]), np.random.default_rng(2), ShapeParams.for_family("ellipsoid"))[0]
+    a, b, c = p.dims_mm / 2
+    assert p.volume_mm3 == pytest.approx(4 / 3 * np.pi * a * b * c, rel=0.08)  # 92-point hull is a little smaller
+
+
+def test_crushed_rocks_are_unique():
+    parts = make_particles("crushed_rock", np.full(5, 8.0), np.random.default_rng(3), ShapeParams.for_family("crushed_rock"))
+    vols = [p.volume_mm3 for p in parts]
+    assert len(set(np.round(vols, 6))) == 5
+
+
+def test_user_mesh_family(tmp_path):
+    trimesh = pytest.importorskip("trimesh")
+    box = trimesh.creation.box(extents=[3.0, 2.0, 1.0])
+    path = tmp_path / "rock.stl"
+    box.export(path)
+    params = ShapeParams.for_family("mesh", {"mesh_files": [str(path)]})
+    p = make_particles("mesh", np.array([4.0]), np.random.default_rng(0), params)[0]
+    np.testing.assert_allclose(p.dims_mm, [6.0, 4.0, 2.0], rtol=1e-9)
+    assert p.volume_mm3 == pytest.approx(48.0)
+
+
+def test_user_mesh_errors(tmp_path):
+    bad = tmp_path / "bad.obj"
+    bad.write_text("this is not a mesh\n")
+    for files, msg in [([str(tmp_path / "nope.obj")], "not found"), ([str(bad)], "bad.obj")]:
+        params = ShapeParams.for_family("mesh", {"mesh_files": files})
+        with pytest.raises(PsdError, match=msg):
+            make_particles("mesh", np.array([4.0]), np.random.default_rng(0), params)
+
+
+def test_pack_roundtrip():
+    parts = make_particles("granule", np.array([3.0, 4.0]), np.random.default_rng(0), ShapeParams.for_family("granule"))
+    g = Geometry.from_arrays(pack(parts))
+    assert len(g) == 2
+    v, f = g.mesh(1)
+    np.testing.assert_allclose(v, parts[1].vertices, atol=1e-5)
+    np.testing.assert_array_equal(f, parts[1].faces)
+
+
+def test_unknown_family():
+    with pytest.raises(PsdError, match="unknown particle shape"):
+        ShapeParams.for_family("cube")
