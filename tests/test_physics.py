@@ -14,7 +14,7 @@ from psdfactory.physics import (
     spawn_heights,
 )
 from psdfactory.sampling import SampleParams, sample_scene
-from psdfactory.shapes import Geometry
+from psdfactory.geometry import Geometry
 
 from .conftest import tiny_config
 
@@ -87,3 +87,10 @@ def test_scene_failing_quality_is_retried_then_fails_loudly():
         simulate(geo, xy, 60.0, spec["entropy"], PhysicsParams.from_dict(phys), log=logs.append)
     assert "settled fraction" in str(e.value)
     assert sum("attempt" in m for m in logs) == 2
+
+
+def test_mass_ratio_is_capped():
+    from psdfactory.physics import particle_masses
+
+    m = particle_masses(np.array([1.0, 1000.0, 8000.0]), 2.0, max_ratio=100.0)
+    np.testing.assert_allclose(m, [0.16, 2.0, 16.0])  # 8000 mm³ × 2 g/cm³ = 16 g; floor 0.16 g

@@ -9,7 +9,7 @@ from psdfactory.sampling import SampleParams, drop_positions, sample_scene, trun
 from .conftest import tiny_config
 
 
-@pytest.mark.parametrize("mean,sigma,lo,hi", [(9.0, 7.0, 0.1, 20.0), (6.0, 8.0, 0.1, 20.0), (3.0, 1.0, 2.5, 4.0)])
+@pytest.mark.parametrize("mean,sigma,lo,hi", [(9.0, 7.0, 0.1, 20.0), (6.0, 8.0, 0.1, 20.0), (3.0, 1.0, 2.5, 4.0), (2.0, 3.0, 5.0, 15.0), (9.0, 0.5, 0.1, 8.0)])
 def test_truncnormal_matches_scipy(mean, sigma, lo, hi):
     rng = np.random.default_rng(0)
     x = truncnormal_sizes(rng, 20000, mean, sigma, lo, hi)
@@ -24,6 +24,8 @@ def test_truncnormal_matches_scipy(mean, sigma, lo, hi):
 def test_truncnormal_rejects_bad_bounds():
     with pytest.raises(PsdError, match="a < b"):
         truncnormal_sizes(np.random.default_rng(0), 10, 5, 1, 8, 2)
+    with pytest.raises(PsdError, match="too far in the tail"):
+        truncnormal_sizes(np.random.default_rng(0), 10, 0.0, 0.1, 50.0, 60.0)
 
 
 def _params(cfg, index=0):

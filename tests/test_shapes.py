@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from psdfactory import PsdError
+from psdfactory.geometry import Geometry
 from psdfactory.shapes import (
-    Geometry,
     ShapeParams,
     convex_mesh,
     make_particles,

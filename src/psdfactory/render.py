@@ -20,7 +20,7 @@ from scipy import ndimage
 from . import PsdError
 from .physics import CM, quat_to_matrix
 from .seeding import rng_for
-from .shapes import Geometry
+from .geometry import Geometry
 
 Range = tuple[float, float]
 MAX_PARTICLES_16BIT = 65534
@@ -113,22 +113,34 @@ def mm_per_px(table_size_mm: float, resolution: int) -> float:
     return table_size_mm / resolution
 
 
-def face_normals_mesh(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unshared vertices with face normals: crisp facets for angular particles."""
-    tri = v[f].reshape(-1, 3)
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
-    return tri, np.arange(len(tri)), np.repeat(n, 3, axis=0)
+def visual_meshes(geometry: Geometry, smooth: bool, scale: float) -> list[tuple[list, list, list]]:
+    """Per particle (vertices, indices, normals) lists for pybullet, computed for all at once.
 
-
-def smooth_normals_mesh(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Shared vertices with area-weighted vertex normals: smooth, rounded particles."""
+    Angular particles get unshared vertices with face normals (crisp facets); rounded ones
+    share vertices with area-weighted vertex normals (smooth shading).
+    """
+    v = geometry.vertices.astype(np.float64) * scale
+    counts = np.diff(geometry.face_offsets)
+    f = geometry.faces + np.repeat(geometry.vert_offsets[:-1], counts)[:, None]  # global vertex ids
     fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    vn = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(vn, f[:, k], fn)
-    vn /= np.linalg.norm(vn, axis=1, keepdims=True) + 1e-12
-    return v, f.reshape(-1), vn
+    out = []
+    if smooth:
+        vn = np.zeros_like(v)
+        for k in range(3):
+            np.add.at(vn, f[:, k], fn)
+        vn /= np.linalg.norm(vn, axis=1, keepdims=True) + 1e-12
+        for i in range(len(geometry)):
+            a, b = geometry.vert_offsets[i], geometry.vert_offsets[i + 1]
+            local = geometry.faces[geometry.face_offsets[i] : geometry.face_offsets[i + 1]]
+            out.append((v[a:b].tolist(), local.ravel().tolist(), vn[a:b].tolist()))
+    else:
+        fn /= np.linalg.norm(fn, axis=1, keepdims=True) + 1e-12
+        tri = v[f].reshape(-1, 3)
+        nrm = np.repeat(fn, 3, axis=0)
+        for i in range(len(geometry)):
+            a, b = 3 * geometry.face_offsets[i], 3 * geometry.face_offsets[i + 1]
+            out.append((tri[a:b].tolist(), list(range(b - a)), nrm[a:b].tolist()))
+    return out
 
 
 def shade_from_height(height: np.ndarray, px_mm: float, light_dir: list[float], max_height_mm: float) -> np.ndarray:
@@ -170,8 +182,7 @@ def render_tiny(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.nd
     T = float(spec["table_size"])
     size = p.resolution * p.supersample
     look = draw_look(rng, p, n)
-    smooth = spec["shape_type"] in ("granule", "ellipsoid")
-    mesh_fn = smooth_normals_mesh if smooth else face_normals_mesh
+    meshes = visual_meshes(geometry, smooth=spec["shape_type"] in ("granule", "ellipsoid"), scale=CM)
 
     cid = pb.connect(pb.DIRECT)
     try:
@@ -181,14 +192,12 @@ def render_tiny(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.nd
         )
         table = pb.createMultiBody(0, -1, table_vs, basePosition=[0, 0, -0.5], physicsClientId=cid)
         body_to_label = {table: 0}
-        for i in range(n):
-            v, f = geometry.mesh(i)
-            verts, idx, normals = mesh_fn(v * CM, f)
+        for i, (verts, idx, normals) in enumerate(meshes):
             vs = pb.createVisualShape(
                 pb.GEOM_MESH,
-                vertices=verts.tolist(),
-                indices=idx.tolist(),
-                normals=normals.tolist(),
+                vertices=verts,
+                indices=idx,
+                normals=normals,
                 rgbaColor=[*look.particle_rgb[i], 1.0],
                 specularColor=[0.05, 0.05, 0.05],
                 physicsClientId=cid,

@@ -12,7 +12,7 @@ import json
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import truncnorm
+from scipy.special import ndtr, ndtri
 
 from . import PsdError, __version__
 from .seeding import rng_for, scene_entropy, scene_id
@@ -67,7 +67,17 @@ def truncnormal_sizes(rng: np.random.Generator, n: int, mean: float, sigma: floa
     if sigma <= 0:
         raise PsdError(f"size sigma must be > 0, got {sigma}")
     a, b = (lo - mean) / sigma, (hi - mean) / sigma
-    return truncnorm.rvs(a, b, loc=mean, scale=sigma, size=n, random_state=rng)
+    # Inverse-CDF sampling, done in the lower tail where the normal CDF keeps its precision.
+    # (scipy.stats.truncnorm gives the same distribution, tested, but costs 0.3 s to import
+    # in every sample job.)
+    flip = a > 0
+    if flip:
+        a, b = -b, -a
+    pa, pb = ndtr(a), ndtr(b)
+    if not pb > pa:
+        raise PsdError(f"size bounds [{lo}, {hi}] lie too far in the tail of N({mean}, {sigma}²)")
+    z = np.clip(ndtri(pa + rng.random(n) * (pb - pa)), a, b)
+    return mean + sigma * (-z if flip else z)
 
 
 def drop_positions(

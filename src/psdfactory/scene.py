@@ -17,7 +17,7 @@ import numpy as np
 
 from . import PsdError
 from .io import read_json, read_npz, read_parquet, read_png, write_json, write_npz, write_parquet, write_png
-from .shapes import Geometry
+from .geometry import Geometry
 
 POSE_COLUMNS = ("particle_id", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "settled")
 

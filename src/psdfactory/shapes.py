@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
 
 from . import PsdError
 
@@ -88,6 +87,8 @@ def volume_and_centroid(vertices: np.ndarray, faces: np.ndarray) -> tuple[float,
 
 def convex_mesh(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Convex hull as (vertices, outward faces) with only the hull's own vertices."""
+    from scipy.spatial import ConvexHull, QhullError  # imported here: the other stages never need it
+
     try:
         hull = ConvexHull(points)
     except QhullError as e:
@@ -205,34 +206,3 @@ def pack(particles: list[Particle]) -> dict[str, np.ndarray]:
         "volume_mm3": np.array([p.volume_mm3 for p in particles]),
         "dims_mm": np.array([p.dims_mm for p in particles]).reshape(-1, 3),
     }
-
-
-@dataclass
-class Geometry:
-    """The packed meshes of one scene."""
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    vert_offsets: np.ndarray
-    face_offsets: np.ndarray
-    size_mm: np.ndarray
-    volume_mm3: np.ndarray
-    dims_mm: np.ndarray
-
-    @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "Geometry":
-        try:
-            return cls(**{k: arrays[k] for k in cls.__dataclass_fields__})
-        except KeyError as e:
-            raise PsdError(f"geometry file lacks the array {e}; rerun the sample job") from None
-
-    def __len__(self) -> int:
-        return len(self.size_mm)
-
-    def mesh(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        v = self.vertices[self.vert_offsets[i] : self.vert_offsets[i + 1]].astype(np.float64)
-        f = self.faces[self.face_offsets[i] : self.face_offsets[i + 1]]
-        return v, f
-
-    def bounding_radius(self) -> np.ndarray:
-        return np.array([np.linalg.norm(self.mesh(i)[0], axis=1).max() for i in range(len(self))])

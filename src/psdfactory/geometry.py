@@ -1,0 +1,43 @@
+"""The packed particle meshes of one scene (``geometry.npz``), shared by all stages.
+
+Only numpy here: the simulate, render and label stages import this without the cost of scipy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import PsdError
+
+
+@dataclass
+class Geometry:
+    """The packed meshes of one scene."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    vert_offsets: np.ndarray
+    face_offsets: np.ndarray
+    size_mm: np.ndarray
+    volume_mm3: np.ndarray
+    dims_mm: np.ndarray
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "Geometry":
+        try:
+            return cls(**{k: arrays[k] for k in cls.__dataclass_fields__})
+        except KeyError as e:
+            raise PsdError(f"geometry file lacks the array {e}; rerun the sample job") from None
+
+    def __len__(self) -> int:
+        return len(self.size_mm)
+
+    def mesh(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        v = self.vertices[self.vert_offsets[i] : self.vert_offsets[i + 1]].astype(np.float64)
+        f = self.faces[self.face_offsets[i] : self.face_offsets[i + 1]]
+        return v, f
+
+    def bounding_radius(self) -> np.ndarray:
+        return np.array([np.linalg.norm(self.mesh(i)[0], axis=1).max() for i in range(len(self))])
