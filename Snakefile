@@ -1,14 +1,19 @@
 # psdfactory: synthetic particle-bed images with PSD labels.
 #   snakemake -j2                          # the default config (config/config.yaml)
 #   snakemake -j2 --configfile config/paper.yaml
-# Per scene: sample -> simulate -> render -> label, one job each; then sharded Parquet manifests.
+# Per scene: sample -> simulate -> render -> label, one job each; then sharded Parquet manifests,
+# one training job per architecture, evaluation, an inference benchmark and one final report.
 
 from snakemake.utils import min_version
 
 min_version("9.0")
 
 
-configfile: "config/config.yaml"
+# The default config, unless --configfile names another: Snakemake would otherwise merge the
+# two, and a user's config would silently inherit the default's datasets.
+if not workflow.overwrite_configfiles:
+
+    configfile: "config/config.yaml"
 
 
 include: "rules/common.smk"
@@ -17,6 +22,10 @@ include: "rules/simulate.smk"
 include: "rules/render.smk"
 include: "rules/label.smk"
 include: "rules/manifest.smk"
+include: "rules/train.smk"
+include: "rules/evaluate.smk"
+include: "rules/benchmark.smk"
+include: "rules/report.smk"
 
 
 rule all:

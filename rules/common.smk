@@ -25,12 +25,14 @@ if shutil.which("psdfactory") is None:
 
 RESULTS = config["results"].rstrip("/")
 DATASETS = list(config["datasets"])
+ARCHS = list(config["train"]["architectures"])
 
 
 wildcard_constraints:
     dataset="[A-Za-z][A-Za-z0-9_]*",
     scene="[A-Za-z][A-Za-z0-9_]*-[0-9]{6}",
     shard="[0-9]{5}",
+    arch="[a-z][a-z0-9_]*",
 
 
 def scene_path(name):
@@ -73,6 +75,23 @@ def manifest_params(wildcards):
     return as_json(psd_config.manifest_params(config, wildcards.dataset))
 
 
+def train_params(wildcards):
+    return as_json(psd_config.train_params(config, wildcards.arch))
+
+
+def evaluate_params(wildcards):
+    return as_json({"datasets": DATASETS, "precision": config["evaluate"]["precision"], "arch": wildcards.arch})
+
+
+def benchmark_params(wildcards):
+    return as_json({"dataset": config["train"]["dataset"], **config["benchmark"]})
+
+
+def gpu_count(wildcards):
+    """GPUs a training/benchmark job asks for: one unless the config pins the CPU."""
+    return 0 if config["train"]["device"] == "cpu" else 1
+
+
 def shard_scene_files(name):
     """Input function: one file of every scene of a manifest shard."""
 
@@ -100,4 +119,5 @@ def all_targets():
     for ds in DATASETS:
         targets += shard_files(ds, "scenes") + shard_files(ds, "particles")
         targets.append(f"{RESULTS}/{ds}/contact_sheet.png")
+    targets += [f"{RESULTS}/report/report.html", f"{RESULTS}/report/report.md"]
     return targets

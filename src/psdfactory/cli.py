@@ -67,6 +67,77 @@ def cmd_check_config(a: argparse.Namespace) -> None:
     print(f"{a.configfile}: OK ({len(cfg['datasets'])} datasets, {n} scenes)")
 
 
+def cmd_train(a: argparse.Namespace) -> None:
+    from .train import TrainParams, train
+
+    params = _params(a.params)
+    if a.threads:
+        params["threads"] = a.threads
+    train(TrainParams.from_dict(params), Path(a.results), Path(a.out_dir))
+
+
+def cmd_evaluate(a: argparse.Namespace) -> None:
+    from .evaluate import evaluate, plot_history
+
+    p = _params(a.params)
+    _threads(a.threads)
+    out = Path(a.out_dir)
+    evaluate(Path(a.model), Path(a.results), p["datasets"], out, precision=p.get("precision", "fp32"))
+    if a.history:
+        plot_history(Path(a.history), p.get("arch", Path(a.model).parent.name), out / "loss_curve.png")
+
+
+def cmd_benchmark(a: argparse.Namespace) -> None:
+    from .benchmark import benchmark
+    from .io import write_json
+
+    p = _params(a.params)
+    _threads(a.threads)
+    res = benchmark(Path(a.model), Path(a.results), p["dataset"], p["batch_size"], p["seconds"], p["repeats"])
+    write_json(Path(a.out), res)
+
+
+def cmd_report(a: argparse.Namespace) -> None:
+    from .report import build_report
+
+    cfg = json.loads(Path(a.config_json).read_text()) if a.config_json else _params(a.params)
+    r = Path(a.results)
+    build_report(r, cfg, r / "models", r / "eval", r / "bench", Path(a.html), Path(a.md))
+    print(f"wrote {a.html} and {a.md}")
+
+
+def cmd_predict(a: argparse.Namespace) -> int:
+    from .predict import predict_files, write_predictions
+
+    rows = predict_files(Path(a.model), a.images, a.mm_per_px, device=a.device, log=lambda m: print(m, file=sys.stderr))
+    print(f"{'image':<50} {'d10_mm':>8} {'d50_mm':>8} {'d90_mm':>8}")
+    for r in rows:
+        if r["error"]:
+            print(f"{r['image']:<50} error: {r['error']}")
+        else:
+            print(f"{r['image']:<50} {r['d10_mm']:>8.3f} {r['d50_mm']:>8.3f} {r['d90_mm']:>8.3f}")
+    if a.out:
+        write_predictions(rows, Path(a.out))
+        print(f"wrote {a.out}", file=sys.stderr)
+    failed = sum(bool(r["error"]) for r in rows)
+    if failed:
+        print(f"psdfactory predict: {failed} of {len(rows)} images could not be read", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def cmd_export(a: argparse.Namespace) -> None:
+    from .predict import export
+
+    export(Path(a.model), Path(a.out_dir))
+
+
+def _threads(n: int) -> None:
+    if n:
+        import torch
+
+        torch.set_num_threads(n)
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="psdfactory", description=__doc__)
     ap.add_argument("--version", action="version", version=f"psdfactory {__version__}")
@@ -98,6 +169,51 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="contact_sheet.png")
     p.set_defaults(func=cmd_show)
 
+    p = sub.add_parser("train", help="train one architecture → model.pt, history.csv, TensorBoard logs")
+    p.add_argument("--params", required=True, help="training settings as JSON (see train.TrainParams)")
+    p.add_argument("--results", required=True)
+    p.add_argument("--out-dir", required=True)
+    p.add_argument("--threads", type=int, default=0)
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("evaluate", help="metrics, predictions and plots of a trained model")
+    p.add_argument("--params", required=True, help='JSON: {"datasets": [...], "precision": "fp32"}')
+    p.add_argument("--model", required=True)
+    p.add_argument("--results", required=True)
+    p.add_argument("--out-dir", required=True)
+    p.add_argument("--history", help="history.csv to plot the loss curves of")
+    p.add_argument("--threads", type=int, default=0)
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("benchmark", help="inference speed (fp32 eager vs the fast path) and accuracy change")
+    p.add_argument("--params", required=True, help='JSON: {"dataset", "batch_size", "seconds", "repeats"}')
+    p.add_argument("--model", required=True)
+    p.add_argument("--results", required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--threads", type=int, default=0)
+    p.set_defaults(func=cmd_benchmark)
+
+    p = sub.add_parser("report", help="the final HTML report and its Markdown twin")
+    p.add_argument("--params", default="{}", help="the validated config as JSON")
+    p.add_argument("--config-json", help="or: a file holding it")
+    p.add_argument("--results", required=True)
+    p.add_argument("--html", required=True)
+    p.add_argument("--md", required=True)
+    p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser("predict", help="d10/d50/d90 in mm for image files or folders")
+    p.add_argument("--model", required=True, help="a model.pt written by training")
+    p.add_argument("--mm-per-px", type=float, help="scale of the images; they are rescaled to the model's scale")
+    p.add_argument("--out", help="write the predictions to this .csv or .json file")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("images", nargs="+", help="image files and/or folders of images")
+    p.set_defaults(func=cmd_predict)
+
+    p = sub.add_parser("export", help="write the model as ONNX and TorchScript, checked against PyTorch")
+    p.add_argument("--model", required=True)
+    p.add_argument("--out-dir", required=True)
+    p.set_defaults(func=cmd_export)
+
     p = sub.add_parser("check-config", help="validate a config file against the schema")
     p.add_argument("configfile")
     p.set_defaults(func=cmd_check_config)
@@ -107,11 +223,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        args.func(args)
+        return args.func(args) or 0
     except PsdError as e:
         print(f"psdfactory {args.command}: error: {e}", file=sys.stderr)
         return 2
-    return 0
 
 
 if __name__ == "__main__":

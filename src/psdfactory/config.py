@@ -103,6 +103,16 @@ def semantic_problems(config: dict) -> list[str]:
     lo, hi = r["light_elevation_deg"]
     if not (0 < lo and hi <= 90):
         problems.append("render.light_elevation_deg: must lie in (0, 90]")
+    t = config["train"]
+    if t["dataset"] not in config["datasets"]:
+        problems.append(f"train.dataset: {t['dataset']!r} is not one of the configured datasets ({', '.join(config['datasets'])})")
+    else:
+        split = config["datasets"][t["dataset"]]["split"]
+        for s in ("train", "val"):
+            if split.get(s, 0) <= 0:
+                problems.append(f"datasets.{t['dataset']}.split: training needs a '{s}' fraction > 0")
+    if len(set(t["architectures"])) != len(t["architectures"]):
+        problems.append("train.architectures: lists an architecture twice")
     return problems
 
 
@@ -148,3 +158,15 @@ def shard_indices(config: dict, dataset: str, shard: int) -> range:
     ds = config["datasets"][dataset]
     lo = shard * ds["shard_size"]
     return range(lo, min(lo + ds["shard_size"], ds["n_scenes"]))
+
+
+def train_params(config: dict, arch: str) -> dict:
+    t = config["train"]
+    keys = ("dataset", "pretrained", "epochs", "batch_size", "lr", "weight_decay", "lr_factor", "lr_patience",
+            "early_stopping_patience", "precision", "device", "aux_loss_weight", "augment")
+    out = {k: t[k] for k in keys}
+    out.update(arch=arch, seed=config["seed"], input_size=int(t["input_size"].get(arch, DEFAULT_INPUT_SIZE.get(arch, 224))))
+    return out
+
+
+DEFAULT_INPUT_SIZE = {"inception_v3": 299}

@@ -1,0 +1,21 @@
+# Timings need the machine to themselves: the rule asks for every core, so locally it never
+# shares the CPU with another job.
+rule benchmark:
+    input:
+        model=f"{RESULTS}/models/{{arch}}/model.pt",
+        manifests=lambda wildcards: shard_files(config["train"]["dataset"], "scenes"),
+    output:
+        f"{RESULTS}/bench/{{arch}}.json",
+    params:
+        stage=benchmark_params,
+        results=lambda wildcards, input: results_root(input.manifests[0], 4),
+    threads: workflow.cores
+    resources:
+        gpu=gpu_count,
+    log:
+        f"{RESULTS}/bench/{{arch}}.log",
+    conda:
+        "../envs/train.yaml"
+    shell:
+        "psdfactory benchmark --params {params.stage:q} --model {input.model:q} --results {params.results:q}"
+        " --out {output:q} --threads {threads} > {log:q} 2>&1"

@@ -1,0 +1,32 @@
+rule evaluate:
+    input:
+        model=f"{RESULTS}/models/{{arch}}/model.pt",
+        history=f"{RESULTS}/models/{{arch}}/history.csv",
+        manifests=lambda wildcards: [f for ds in DATASETS for f in shard_files(ds, "scenes")],
+    output:
+        metrics=f"{RESULTS}/eval/{{arch}}/metrics.json",
+        predictions=f"{RESULTS}/eval/{{arch}}/predictions.csv",
+        scatter=report(
+            f"{RESULTS}/eval/{{arch}}/scatter.png",
+            caption="../workflow/report/scatter.rst",
+            category="Accuracy",
+            subcategory="{arch}",
+        ),
+        curve=report(
+            f"{RESULTS}/eval/{{arch}}/loss_curve.png",
+            caption="../workflow/report/loss_curve.rst",
+            category="Training",
+            subcategory="{arch}",
+        ),
+    params:
+        stage=evaluate_params,
+        results=lambda wildcards, input: results_root(input.manifests[0], 4),
+        out_dir=lambda wildcards, output: os.path.dirname(output.metrics),
+    threads: workflow.cores
+    log:
+        f"{RESULTS}/eval/{{arch}}/evaluate.log",
+    conda:
+        "../envs/train.yaml"
+    shell:
+        "psdfactory evaluate --params {params.stage:q} --model {input.model:q} --results {params.results:q}"
+        " --out-dir {params.out_dir:q} --history {input.history:q} --threads {threads} > {log:q} 2>&1"

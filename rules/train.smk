@@ -1,0 +1,20 @@
+rule train:
+    input:
+        manifests=lambda wildcards: shard_files(config["train"]["dataset"], "scenes"),
+    output:
+        model=f"{RESULTS}/models/{{arch}}/model.pt",
+        history=f"{RESULTS}/models/{{arch}}/history.csv",
+    params:
+        stage=train_params,
+        results=lambda wildcards, input: results_root(input.manifests[0], 4),
+        out_dir=lambda wildcards, output: os.path.dirname(output.model),
+    threads: workflow.cores
+    resources:
+        gpu=gpu_count,
+    log:
+        f"{RESULTS}/models/{{arch}}/train.log",
+    conda:
+        "../envs/train.yaml"
+    shell:
+        "psdfactory train --params {params.stage:q} --results {params.results:q}"
+        " --out-dir {params.out_dir:q} --threads {threads} > {log:q} 2>&1"

@@ -1,0 +1,83 @@
+"""Images and targets from the manifests, as tensors for training and evaluation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from . import PsdError
+from .io import read_png
+from .manifest import read_scenes
+from .models import TARGETS
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def manifest_rows(results_root: Path, dataset: str, splits: tuple[str, ...] | None = None) -> list[dict]:
+    rows = read_scenes(results_root, dataset).sort_by("index").to_pylist()
+    if splits is not None:
+        rows = [r for r in rows if r["split"] in splits]
+    return rows
+
+
+def targets(rows: list[dict]) -> torch.Tensor:
+    return torch.tensor([[r[t] for t in TARGETS] for r in rows], dtype=torch.float32).reshape(-1, 3)
+
+
+def to_input(image: np.ndarray, size: int | None) -> torch.Tensor:
+    """uint8 HxWx3 → uint8 3xSxS (area-averaged resize when shrinking)."""
+    t = torch.from_numpy(np.array(image, dtype=np.uint8, copy=True)).permute(2, 0, 1)
+    if size is not None and t.shape[1:] != (size, size):
+        t = F.interpolate(t[None].float(), size=(size, size), mode="bilinear", antialias=True, align_corners=False)[0]
+        t = t.round().clamp(0, 255).to(torch.uint8)
+    return t
+
+
+def normalise(batch_u8: torch.Tensor) -> torch.Tensor:
+    """uint8 Nx3xHxW → float, ImageNet mean/std (what torchvision's backbones expect)."""
+    mean = torch.tensor(IMAGENET_MEAN, device=batch_u8.device).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_STD, device=batch_u8.device).view(1, 3, 1, 1)
+    return (batch_u8.float() / 255.0 - mean) / std
+
+
+def augment_d4(batch: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """Random 90° rotations and flips (the dihedral group of the square), per image."""
+    out = torch.empty_like(batch)
+    k = torch.randint(0, 4, (len(batch),), generator=gen)
+    flip = torch.randint(0, 2, (len(batch),), generator=gen)
+    for i in range(len(batch)):
+        x = torch.rot90(batch[i], int(k[i]), dims=(1, 2))
+        out[i] = torch.flip(x, dims=(2,)) if flip[i] else x
+    return out
+
+
+class SceneImages(torch.utils.data.Dataset):
+    """Scenes of a manifest as (uint8 image at the model's input size, targets in mm).
+
+    Decoded and resized images are cached in memory after first use (a 5000-scene dataset at
+    224 px is 750 MB), so later epochs cost no PNG decoding.
+    """
+
+    def __init__(self, results_root: Path, rows: list[dict], size: int, cache: bool = True):
+        if not rows:
+            raise PsdError("no scenes to load")
+        self.root = Path(results_root)
+        self.rows = rows
+        self.size = size
+        self.y = targets(rows)
+        self.cache: dict[int, torch.Tensor] | None = {} if cache else None
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.cache is not None and i in self.cache:
+            return self.cache[i], self.y[i]
+        x = to_input(read_png(self.root / self.rows[i]["image_path"]), self.size)
+        if self.cache is not None:
+            self.cache[i] = x
+        return x, self.y[i]

@@ -1,0 +1,133 @@
+"""``psdfactory predict``: d10/d50/d90 in mm for new images, and ``export`` for deployment."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from . import PsdError
+from .data import normalise, to_input
+from .io import atomic_path, read_png, write_json
+from .models import main_output
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
+
+
+def expand_inputs(paths: list[str]) -> list[Path]:
+    """Files as given; folders → their image files (sorted)."""
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            out += sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
+        else:
+            out.append(p)
+    return out
+
+
+def network_scale(meta: dict) -> float:
+    """mm per pixel of the network's input: training images are resized to the input size."""
+    return meta["mm_per_px"] * meta["image_resolution"] / meta["input_size"]
+
+
+def prepare(image: np.ndarray, meta: dict, mm_per_px: float | None) -> torch.Tensor:
+    """uint8 image → uint8 1x3xHxW tensor at the scale the network was trained on."""
+    if mm_per_px is None:
+        return to_input(image, meta["input_size"])[None]  # same field of view as training assumed
+    scale = mm_per_px / network_scale(meta)
+    h, w = image.shape[:2]
+    size = (max(32, round(h * scale)), max(32, round(w * scale)))
+    t = torch.from_numpy(np.array(image, dtype=np.uint8, copy=True)).permute(2, 0, 1)[None].float()
+    t = F.interpolate(t, size=size, mode="bilinear", antialias=True, align_corners=False)
+    return t.round().clamp(0, 255).to(torch.uint8)
+
+
+def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None, device: str = "cpu", log=print) -> list[dict]:
+    from .train import load_model, pick_device
+
+    dev = pick_device(device)
+    model, meta = load_model(model_path, dev)
+    log(f"model {meta['arch']} ({model_path}): expects images at {meta['mm_per_px']:.4f} mm/px "
+        f"({meta['image_resolution']} px over {meta['mm_per_px'] * meta['image_resolution']:.0f} mm); "
+        f"network input {meta['input_size']} px = {network_scale(meta):.4f} mm/px")
+    if mm_per_px is None:
+        log("no --mm-per-px given: each image is taken to cover the same field of view as the training images")
+    files = expand_inputs(inputs)
+    if not files:
+        raise PsdError("no image files given")
+    rows = []
+    for f in files:
+        try:
+            x = prepare(read_png(f), meta, mm_per_px)
+            with torch.inference_mode():
+                d = main_output(model(normalise(x.to(dev)))).float().cpu().numpy()[0]
+            rows.append({"image": str(f), "d10_mm": float(d[0]), "d50_mm": float(d[1]), "d90_mm": float(d[2]), "error": ""})
+        except PsdError as e:
+            rows.append({"image": str(f), "d10_mm": None, "d50_mm": None, "d90_mm": None, "error": str(e)})
+    return rows
+
+
+def write_predictions(rows: list[dict], out: Path) -> None:
+    if out.suffix.lower() == ".json":
+        write_json(out, rows)
+        return
+    with atomic_path(out) as tmp, open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["image", "d10_mm", "d50_mm", "d90_mm", "error"])
+        w.writeheader()
+        w.writerows(rows)
+
+
+def export(model_path: Path, out_dir: Path, log=print) -> dict:
+    """ONNX and TorchScript copies of a model, each checked against the PyTorch output."""
+    from .train import load_model
+
+    model, meta = load_model(model_path, "cpu")
+    model = model.float().eval()
+    size = meta["input_size"]
+    x = torch.randn(2, 3, size, size)
+    with torch.inference_mode():
+        ref = main_output(model(x)).numpy()
+
+    class Wrapped(torch.nn.Module):  # plain tensor out, also for InceptionV3
+        def __init__(self, m):
+            super().__init__()
+            self.m = m
+
+        def forward(self, images: torch.Tensor) -> torch.Tensor:
+            return main_output(self.m(images))
+
+    wrapped = Wrapped(model).eval()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    report = {"arch": meta["arch"], "input_size": size, "input": "float32 Nx3xSxS, RGB/255 normalised with ImageNet mean/std",
+              "output": "float32 Nx3: d10, d50, d90 in mm (number-weighted)", "mm_per_px": meta["mm_per_px"]}
+
+    ts_path = out_dir / "model.torchscript.pt"
+    with torch.no_grad():
+        traced = torch.jit.trace(wrapped, x)
+    with atomic_path(ts_path) as tmp:
+        traced.save(str(tmp))
+    loaded = torch.jit.load(str(ts_path))
+    with torch.inference_mode():
+        ts_out = loaded(x).numpy()
+    report["torchscript"] = {"path": str(ts_path), "max_abs_diff_mm": float(np.abs(ts_out - ref).max())}
+
+    onnx_path = out_dir / "model.onnx"
+    with atomic_path(onnx_path) as tmp:
+        torch.onnx.export(wrapped, (x,), str(tmp), input_names=["images"], output_names=["d_mm"],
+                          dynamic_axes={"images": {0: "batch"}, "d_mm": {0: "batch"}}, dynamo=False)
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    onnx_out = sess.run(None, {"images": x.numpy()})[0]
+    report["onnx"] = {"path": str(onnx_path), "max_abs_diff_mm": float(np.abs(onnx_out - ref).max())}
+    for k in ("torchscript", "onnx"):
+        diff = report[k]["max_abs_diff_mm"]
+        if not diff < 1e-3:
+            raise PsdError(f"{k} export differs from PyTorch by {diff:.2e} mm (tolerance 1e-3 mm)")
+        log(f"{k}: {report[k]['path']} (max |difference| vs PyTorch {diff:.1e} mm)")
+    write_json(out_dir / "export.json", report)
+    write_json(out_dir / "meta.json", meta)
+    return report

@@ -1,0 +1,187 @@
+"""The final report: one self-contained HTML file and a Markdown twin."""
+
+from __future__ import annotations
+
+import base64
+import datetime as dt
+import html
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .io import atomic_path
+from .manifest import read_scenes
+from .metrics import NAMES
+
+
+def label_histograms(results_root: Path, datasets: list[str], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 3, figsize=(11, 5.5))
+    for ds in datasets:
+        t = read_scenes(results_root, ds)
+        for row, suffix, kind in ((0, "_mm", "number-weighted"), (1, "_v_mm", "volume-weighted")):
+            for j, n in enumerate(NAMES):
+                ax = axes[row, j]
+                ax.hist(np.asarray(t.column(f"{n}{suffix}")), bins=20, alpha=0.6, label=ds)
+                ax.set_title(f"{n} ({kind})", fontsize=9)
+                ax.set_xlabel("mm")
+    axes[0, 0].legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
+
+
+def _fmt(v, nd=4) -> str:
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "–"
+    return f"{v:.{nd}f}"
+
+
+def accuracy_table(metrics: dict[str, dict], dataset: str) -> tuple[list[str], list[list[str]]]:
+    head = ["CNN model", "R² overall", "MSE overall", "MAE overall"]
+    for n in NAMES:
+        head += [f"R² {n}", f"MSE {n}", f"MAE {n}", f"rel. err. {n}"]
+    head += ["order violations"]
+    rows = []
+    for arch, m in metrics.items():
+        d = m["datasets"].get(dataset)
+        if d is None:
+            continue
+        r = [arch, _fmt(d["overall"]["r2"]), _fmt(d["overall"]["mse"]), _fmt(d["overall"]["mae"])]
+        for n in NAMES:
+            r += [_fmt(d[n]["r2"]), _fmt(d[n]["mse"]), _fmt(d[n]["mae"]), f"{100 * d[n]['rel_err']:.1f} %"]
+        r.append(f"{100 * d['order_violations']:.1f} %")
+        rows.append(r)
+    return head, rows
+
+
+def speed_table(bench: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
+    head = ["CNN model", "device", "input px", "fp32 batch 1 (img/s)", "fp32 batched (img/s)", "fast path",
+            "fast batch 1 (img/s)", "fast batched (img/s)", "fast ms/image (batched)", "speed-up (batched)",
+            "R² change (fast − fp32)", "Parameters (M)", "GFLOPs"]
+    rows = []
+    for arch, b in bench.items():
+        for r in b["results"]:
+            f, s = r["paths"]["fp32"], r["paths"]["fast"]
+            rows.append([arch, r["device"], str(r["input_size"]), _fmt(f["batch1"]["images_per_s"], 1),
+                         _fmt(f["batched"]["images_per_s"], 1), s["name"], _fmt(s["batch1"]["images_per_s"], 1),
+                         _fmt(s["batched"]["images_per_s"], 1), _fmt(s["batched"]["ms_per_image"], 2),
+                         f"{r['speedup_batched']:.2f}×", f"{b['r2_change']:+.4f}", _fmt(r["params_m"], 1),
+                         _fmt(r["gflops"], 2)])
+    return head, rows
+
+
+def _md_table(head, rows) -> str:
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _html_table(head, rows) -> str:
+    h = "".join(f"<th>{html.escape(c)}</th>" for c in head)
+    b = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><thead><tr>{h}</tr></thead><tbody>{b}</tbody></table>"
+
+
+def _img_tag(path: Path, alt: str) -> str:
+    data = base64.b64encode(Path(path).read_bytes()).decode()
+    return f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{data}"><figcaption>{html.escape(alt)}</figcaption></figure>'
+
+
+def build_report(results_root: Path, config: dict, models_dir: Path, eval_dir: Path, bench_dir: Path,
+                 out_html: Path, out_md: Path) -> None:
+    import yaml
+
+    datasets = list(config["datasets"])
+    archs = list(config["train"]["architectures"])
+    fig_dir = out_md.parent / "figures"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    metrics = {a: json.loads((eval_dir / a / "metrics.json").read_text()) for a in archs}
+    bench = {a: json.loads((bench_dir / f"{a}.json").read_text()) for a in archs}
+    histories = {a: models_dir / a / "history.csv" for a in archs}
+
+    figures: list[tuple[Path, str]] = []
+    hist_png = fig_dir / "label_histograms.png"
+    label_histograms(results_root, datasets, hist_png)
+    figures.append((hist_png, "Label distributions per dataset"))
+    for ds in datasets:
+        sheet = results_root / ds / "contact_sheet.png"
+        if sheet.is_file():
+            dst = fig_dir / f"contact_sheet_{ds}.png"
+            shutil.copyfile(sheet, dst)
+            figures.append((dst, f"Contact sheet: {ds}"))
+    from .evaluate import plot_history
+
+    plot_figs = []
+    for a in archs:
+        curve = fig_dir / f"loss_{a}.png"
+        plot_history(histories[a], a, curve)
+        scatter = fig_dir / f"scatter_{a}.png"
+        shutil.copyfile(eval_dir / a / "scatter.png", scatter)
+        plot_figs += [(scatter, f"{a}: predicted vs true"), (curve, f"{a}: training and validation loss")]
+
+    # dataset summary
+    count_head = ["dataset", "scenes", "train", "val", "test", "particles / scene", "mm / px", "shape"]
+    count_rows = []
+    for ds in datasets:
+        t = read_scenes(results_root, ds)
+        splits = t.column("split").to_pylist()
+        n = np.asarray(t.column("n_particles"))
+        count_rows.append([ds, str(t.num_rows), *(str(splits.count(s)) for s in ("train", "val", "test")),
+                           f"{n.min()}–{n.max()}", f"{np.median(np.asarray(t.column('mm_per_px'))):.3f}",
+                           ", ".join(sorted(set(t.column("shape_type").to_pylist())))])
+    weights = [[a, metrics[a]["weights"]] for a in archs]
+    fallback = [a for a in archs if "unavailable" in metrics[a]["weights"]]
+    warning = (f"ImageNet weights were not available for {', '.join(fallback)}: trained from scratch "
+               "(train.pretrained: auto). Expect lower accuracy than with pretrained weights.") if fallback else ""
+    speed_head, speed_rows = speed_table(bench)
+    cfg_yaml = yaml.safe_dump(config, sort_keys=False)
+    when = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+
+    md = [f"# psdfactory report", "", f"Generated {when} by psdfactory {__version__}.", ""]
+    if warning:
+        md += [f"> **Warning:** {warning}", ""]
+    md += ["## Datasets", "", _md_table(count_head, count_rows), ""]
+    md += [f"![{c}](figures/{p.name})" for p, c in figures] + [""]
+    md += ["## Accuracy", "", "Labels are the number-weighted d10/d50/d90 (the paper's). 'Overall' pools the "
+           "three targets, as in the paper's table 2. Evaluated on each dataset's test split.", ""]
+    for ds in datasets:
+        md += [f"### {ds}", "", _md_table(*accuracy_table(metrics, ds)), ""]
+    md += ["## Inference speed", "", "Median of repeated runs; fp32 eager and the fast path measured side by side "
+           "in one run.", "", _md_table(speed_head, speed_rows), ""]
+    md += [f"![{c}](figures/{p.name})" for p, c in plot_figs] + [""]
+    md += ["## Weights used", "", _md_table(["CNN model", "weights"], weights), ""]
+    md += ["## Configuration", "", "```yaml", cfg_yaml.rstrip(), "```", ""]
+    with atomic_path(out_md) as tmp:
+        tmp.write_text("\n".join(md))
+
+    style = ("body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}"
+             "table{border-collapse:collapse;margin:1em 0;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px;"
+             "text-align:right}th{background:#f3f3f3}td:first-child{text-align:left}img{max-width:100%}"
+             "figure{display:inline-block;margin:0.5em;vertical-align:top;max-width:48%}"
+             ".warn{background:#fff3cd;border:1px solid #e0c36a;padding:0.6em 1em}pre{background:#f7f7f7;padding:1em;"
+             "overflow:auto;font-size:12px}")
+    h = [f"<!doctype html><html><head><meta charset='utf-8'><title>psdfactory report</title><style>{style}</style>"
+         "</head><body>", "<h1>psdfactory report</h1>", f"<p>Generated {when} by psdfactory {__version__}.</p>"]
+    if warning:
+        h.append(f"<p class='warn'><b>Warning:</b> {html.escape(warning)}</p>")
+    h += ["<h2>Datasets</h2>", _html_table(count_head, count_rows)] + [_img_tag(p, c) for p, c in figures]
+    h += ["<h2>Accuracy</h2>", "<p>Labels are the number-weighted d10/d50/d90 (the paper's). 'Overall' pools the "
+          "three targets, as in the paper's table 2. Evaluated on each dataset's test split.</p>"]
+    for ds in datasets:
+        h += [f"<h3>{html.escape(ds)}</h3>", _html_table(*accuracy_table(metrics, ds))]
+    h += ["<h2>Inference speed</h2>", "<p>Median of repeated runs; fp32 eager and the fast path measured side by "
+          "side in one run.</p>", _html_table(speed_head, speed_rows)]
+    h += [_img_tag(p, c) for p, c in plot_figs]
+    h += ["<h2>Weights used</h2>", _html_table(["CNN model", "weights"], weights)]
+    h += ["<h2>Configuration</h2>", f"<pre>{html.escape(cfg_yaml)}</pre>", "</body></html>"]
+    with atomic_path(out_html) as tmp:
+        tmp.write_text("\n".join(h))
