@@ -20,7 +20,7 @@ def tiny_config(**dataset_overrides) -> dict:
         "size": {"mean": [5, 8], "sigma": [2, 3], "bounds": [1, 12]},
     }
     ds.update(dataset_overrides)
-    cfg = {"seed": 7, "datasets": {"tiny": ds}, "render": {"resolution": 64}}
+    cfg = {"seed": 7, "datasets": {"tiny": ds}, "render": {"resolution": 64}, "train": {"dataset": "tiny"}}
     return psd_config.validate(cfg)
 
 

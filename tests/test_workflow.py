@@ -1,5 +1,6 @@
 """One tiny end-to-end run of the Snakemake workflow (system-level)."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -13,10 +14,11 @@ from .conftest import REPO
 pytestmark = pytest.mark.workflow
 
 TINY = {
-    "seed": 3,
+    "seed": 7,  # gives the 5 train scenes 2 train / 2 val / 1 test
     "datasets": {
         "train": {
-            "n_scenes": 3, "shard_size": 2, "table_size": 50, "count": [20, 30],
+            "n_scenes": 5, "shard_size": 2, "table_size": 50, "count": [20, 30],
+            "split": {"train": 0.5, "val": 0.25, "test": 0.25},
             "size": {"mean": [4, 7], "sigma": [2, 3], "bounds": [1, 10]},
         },
         "ood": {
@@ -25,6 +27,11 @@ TINY = {
         },
     },
     "render": {"resolution": 48},
+    "train": {
+        "epochs": 1, "batch_size": 2, "precision": "fp32", "pretrained": "none",
+        "input_size": {"resnet50": 32, "inception_v3": 75, "efficientnet_b0": 32},
+    },
+    "benchmark": {"batch_size": 2, "seconds": 0.05, "repeats": 1},
 }
 
 
@@ -41,14 +48,23 @@ def test_tiny_workflow_end_to_end(tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     res = tmp_path / "results"
     scenes = pq.read_table(res / "train" / "manifest" / "scenes")
-    assert sorted(scenes.column("scene_id").to_pylist()) == ["train-000000", "train-000001", "train-000002"]
-    assert len(list((res / "train" / "manifest" / "scenes").glob("shard-*.parquet"))) == 2
+    assert sorted(scenes.column("scene_id").to_pylist()) == [f"train-{i:06d}" for i in range(5)]
+    assert len(list((res / "train" / "manifest" / "scenes").glob("shard-*.parquet"))) == 3
+    assert sorted(p.name for p in res.iterdir()) == ["bench", "eval", "models", "ood", "report", "train"]
     ood = pq.read_table(res / "ood" / "manifest" / "scenes")
     assert ood.column("split").to_pylist() == ["test"] and ood.column("shape_type").to_pylist() == ["granule"]
     parts = pq.read_table(res / "train" / "manifest" / "particles")
     assert parts.num_rows == sum(scenes.column("n_particles").to_pylist())
     assert (res / "train" / "contact_sheet.png").is_file()
     assert (res / "train" / "logs" / "simulate" / "train-000001.log").read_text().count("settled") >= 1
+    # the training half: one model per architecture, evaluation, benchmark, report
+    for arch in ("resnet50", "inception_v3", "efficientnet_b0"):
+        assert (res / "models" / arch / "model.pt").is_file()
+        metrics = json.loads((res / "eval" / arch / "metrics.json").read_text())
+        assert set(metrics["datasets"]) == {"train", "ood"}
+        assert json.loads((res / "bench" / f"{arch}.json").read_text())["results"][0]["paths"]["fast"]
+    html = (res / "report" / "report.html").read_text()
+    assert "Inference speed" in html and "efficientnet_b0" in html
     # a second run has nothing to do
     r = snakemake("-n", "--configfile", str(cfgfile))
     assert r.returncode == 0 and "Nothing to be done" in r.stdout + r.stderr

@@ -1,0 +1,75 @@
+#!/usr/bin/env python
+"""Inference speed per architecture at the paper's input sizes (table 3 layout).
+
+Times the plain fp32 eager model and the fast path for this hardware side by side in one run
+(medians of repeated runs), at batch 1 and batched, and compares with the paper's 8-core CPU
+figures and this project's goal (3× the paper, batched). Speed does not depend on the weights,
+so untrained models are timed; pass --results to also measure the accuracy change of the fast
+path with the trained models of a workflow run (results/models/<arch>/model.pt).
+
+    .venv/bin/python bench/inference_benchmark.py [--batch 16] [--seconds 2] [--repeats 5] [--results results]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from psdfactory.benchmark import benchmark, benchmark_model
+from psdfactory.models import TargetStats, build_model
+
+PAPER_CPU_FPS = {"resnet50": 14.66, "inception_v3": 12.00, "efficientnet_b0": 21.51}  # Ryzen 7 5800H, 8 cores
+SIZES = {"resnet50": 224, "inception_v3": 299, "efficientnet_b0": 224}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--archs", nargs="+", default=list(SIZES))
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--seconds", type=float, default=2.0)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--results", help="results root of a workflow run, for the accuracy of the fast path")
+    ap.add_argument("--json", help="also write the figures to this file")
+    a = ap.parse_args()
+
+    stats = TargetStats([2.0, 9.0, 16.0], [1.0, 1.0, 1.0], [2.0, 7.0, 7.0], [1.0, 1.0, 1.0])
+    rows, out = [], {}
+    dev = torch.device("cpu")
+    print(f"CPU threads: {torch.get_num_threads()}; batch {a.batch}; medians of {a.repeats} runs of ~{a.seconds} s")
+    for arch in a.archs:
+        size = SIZES.get(arch, 224)
+        model, _ = build_model(arch, stats, "none", size=size, log=lambda m: None)
+        print(f"{arch} at {size} px:")
+        r = benchmark_model(model.eval(), size, dev, a.batch, a.seconds, a.repeats)
+        out[arch] = r
+        if a.results:
+            mp = Path(a.results) / "models" / arch / "model.pt"
+            if mp.is_file():
+                acc = benchmark(mp, Path(a.results), "train", a.batch, 0.2, 1)
+                r["r2_fp32"] = acc["accuracy"]["fp32"]["overall"]["r2"]
+                r["r2_fast"] = acc["accuracy"]["fast"]["overall"]["r2"]
+        rows.append((arch, size, r))
+
+    print()
+    print("| CNN model | input | fp32 b1 img/s | fp32 b16 img/s | fast path | fast b1 img/s | fast b16 img/s "
+          "| ms/img (fast b16) | speed-up | paper CPU FPS | goal (3×) | met | params (M) | GFLOPs | R² fp32 → fast |")
+    print("|" + "---|" * 15)
+    for arch, size, r in rows:
+        f, s = r["paths"]["fp32"], r["paths"]["fast"]
+        paper = PAPER_CPU_FPS.get(arch)
+        goal = 3 * paper if paper else None
+        met = "–" if goal is None else ("yes" if s["batched"]["images_per_s"] >= goal else "no")
+        acc = f"{r['r2_fp32']:.4f} → {r['r2_fast']:.4f}" if "r2_fast" in r else "–"
+        print(f"| {arch} | {size} | {f['batch1']['images_per_s']:.1f} | {f['batched']['images_per_s']:.1f} | {s['name']} "
+              f"| {s['batch1']['images_per_s']:.1f} | {s['batched']['images_per_s']:.1f} | {s['batched']['ms_per_image']:.2f} "
+              f"| {r['speedup_batched']:.2f}× | {paper or '–'} | {goal and round(goal, 1) or '–'} | {met} "
+              f"| {r['params_m']:.1f} | {r['gflops']:.2f} | {acc} |")
+    if a.json:
+        Path(a.json).write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

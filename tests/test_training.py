@@ -1,0 +1,226 @@
+"""Training, resume, evaluation, benchmark, report, predict and export on a tiny dataset."""
+
+import json
+import shutil
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+import torch
+
+from psdfactory import PsdError
+from psdfactory import config as psd_config
+from psdfactory.manifest import write_shard
+
+from .conftest import make_scene, tiny_config
+
+pytestmark = pytest.mark.slow
+
+SPLITS = ["train"] * 6 + ["val"] * 2 + ["test"] * 2
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    """10 tiny scenes at 32 px with a fixed train/val/test split, and their manifest."""
+    cfg = tiny_config(n_scenes=10, count=[15, 25])
+    cfg["render"]["resolution"] = 32
+    root = tmp_path_factory.mktemp("res")
+    dirs = [make_scene(cfg, root / "tiny" / "scenes" / f"tiny-{i:06d}", index=i) for i in range(10)]
+    m = root / "tiny" / "manifest"
+    out = m / "scenes" / "shard-00000.parquet"
+    write_shard(dirs, root, {"train": 1.0}, out, m / "particles" / "shard-00000.parquet")
+    t = pq.read_table(out)
+    t = t.set_column(t.schema.get_field_index("split"), "split", pa.array(SPLITS))
+    pq.write_table(t, out)
+    return root
+
+
+def params(**over):
+    from psdfactory.train import TrainParams
+
+    p = dict(arch="resnet18", dataset="tiny", pretrained="none", epochs=6, batch_size=3, lr=3e-3, input_size=32,
+             precision="fp32", seed=1, early_stopping_patience=50)
+    p.update(over)
+    return TrainParams.from_dict(p)
+
+
+@pytest.fixture(scope="module")
+def trained(dataset, tmp_path_factory):
+    from psdfactory.train import train
+
+    out = tmp_path_factory.mktemp("model")
+    summary = train(params(), dataset, out, log=lambda m: None)
+    return out, summary
+
+
+def test_training_lowers_loss_and_writes_outputs(trained):
+    import csv
+
+    out, summary = trained
+    rows = list(csv.DictReader(open(out / "history.csv")))
+    assert len(rows) == 6
+    losses = [float(r["train_loss"]) for r in rows]
+    assert min(losses[-2:]) < 0.7 * losses[0]
+    assert (out / "model.pt").is_file() and (out / "checkpoints" / "best.pt").is_file()
+    assert any((out / "tensorboard").iterdir())
+    assert summary["arch"] == "resnet18" and summary["input_size"] == 32
+    assert summary["best_epoch"] == 1 + int(np.argmin([float(r["val_loss"]) for r in rows]))
+
+
+def test_resume_after_interruption_matches_uninterrupted(dataset, trained, tmp_path, monkeypatch):
+    import csv
+
+    from psdfactory import train as train_mod
+
+    out = tmp_path / "m"
+    real = train_mod.run_epoch
+    calls = {"n": 0}
+
+    def crash_on_third(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(train_mod, "run_epoch", crash_on_third)
+    with pytest.raises(KeyboardInterrupt):
+        train_mod.train(params(), dataset, out, log=lambda m: None)
+    assert not (out / "model.pt").exists()
+    monkeypatch.setattr(train_mod, "run_epoch", real)
+    logs = []
+    train_mod.train(params(), dataset, out, log=logs.append)
+    assert any("resuming resnet18 from epoch 3" in m for m in logs)
+    resumed = [float(r["train_loss"]) for r in csv.DictReader(open(out / "history.csv"))]
+    straight = [float(r["train_loss"]) for r in csv.DictReader(open(trained[0] / "history.csv"))]
+    np.testing.assert_allclose(resumed, straight, rtol=1e-5)
+
+
+def test_other_settings_do_not_resume(dataset, trained, tmp_path):
+    from psdfactory.train import train
+
+    out = tmp_path / "m"
+    shutil.copytree(trained[0], out)
+    logs = []
+    train(params(epochs=1, lr=1e-3), dataset, out, log=logs.append)
+    assert any("ignoring" in m for m in logs) and not any("resuming" in m for m in logs)
+
+
+def test_needs_train_and_val(dataset, tmp_path):
+    from psdfactory.train import train
+
+    with pytest.raises(PsdError, match="0 val scenes"):
+        import pyarrow.parquet as pq2
+
+        root = tmp_path / "r"
+        shutil.copytree(dataset, root)
+        f = root / "tiny" / "manifest" / "scenes" / "shard-00000.parquet"
+        t = pq2.read_table(f)
+        t = t.set_column(t.schema.get_field_index("split"), "split", pa.array(["train"] * 10))
+        pq2.write_table(t, f)
+        train(params(), root, tmp_path / "m", log=lambda m: None)
+
+
+def test_evaluate_benchmark_report(dataset, trained, tmp_path):
+    from psdfactory.benchmark import benchmark
+    from psdfactory.evaluate import evaluate, plot_history
+    from psdfactory.io import write_json
+    from psdfactory.report import build_report
+
+    model_dir, _ = trained
+    root = tmp_path / "res"
+    shutil.copytree(dataset, root)
+    shutil.copytree(model_dir, root / "models" / "resnet18")
+    ev = root / "eval" / "resnet18"
+    res = evaluate(root / "models" / "resnet18" / "model.pt", root, ["tiny"], ev, log=lambda m: None)
+    m = res["datasets"]["tiny"]
+    assert m["n"] == 2 and m["split"] == "test" and m["order_violations"] == 0.0
+    assert set(m["overall"]) == {"r2", "mse", "mae"}
+    preds = (ev / "predictions.csv").read_text().splitlines()
+    assert len(preds) == 3 and "pred_d50_mm" in preds[0]
+    plot_history(root / "models" / "resnet18" / "history.csv", "resnet18", ev / "loss_curve.png")
+
+    b = benchmark(root / "models" / "resnet18" / "model.pt", root, "tiny", batch=2, seconds=0.05, repeats=2, log=lambda m: None)
+    r = b["results"][0]
+    assert r["paths"]["fp32"]["batch1"]["images_per_s"] > 0 and r["paths"]["fast"]["batched"]["batch"] == 2
+    assert r["params_m"] == pytest.approx(11.18, abs=0.05) and r["gflops"] > 0
+    assert abs(b["r2_change"]) < 0.05
+    write_json(root / "bench" / "resnet18.json", b)
+
+    cfg = tiny_config()
+    cfg["train"]["architectures"] = ["resnet18"]
+    html, md = root / "report" / "report.html", root / "report" / "report.md"
+    (root / "tiny" / "contact_sheet.png").write_bytes((ev / "scatter.png").read_bytes())
+    build_report(root, cfg, root / "models", root / "eval", root / "bench", html, md)
+    text = html.read_text()
+    assert "data:image/png;base64," in text and "R² overall" in text and "resnet18" in text
+    assert "Warning:" not in text  # pretrained: none is no fallback to warn about
+    assert "| resnet18 |" in md.read_text()
+
+
+def test_predict_good_and_bad_files(dataset, trained, tmp_path, capsys):
+    from psdfactory.cli import main
+
+    model = trained[0] / "model.pt"
+    imgs = tmp_path / "imgs"
+    imgs.mkdir()
+    shutil.copy(dataset / "tiny" / "scenes" / "tiny-000008" / "image.png", imgs / "a.png")
+    shutil.copy(dataset / "tiny" / "scenes" / "tiny-000009" / "image.png", imgs / "c.png")
+    (imgs / "b.png").write_bytes(b"not a png at all")
+    out = tmp_path / "pred.json"
+    code = main(["predict", "--model", str(model), "--out", str(out), str(imgs), str(tmp_path / "missing.png")])
+    assert code == 1
+    rows = json.loads(out.read_text())
+    assert [r["image"].rsplit("/", 1)[-1] for r in rows] == ["a.png", "b.png", "c.png", "missing.png"]
+    good = [r for r in rows if not r["error"]]
+    assert len(good) == 2 and all(r["d10_mm"] <= r["d50_mm"] <= r["d90_mm"] for r in good)
+    assert "not a readable image" in rows[1]["error"] and "missing image" in rows[3]["error"]
+    captured = capsys.readouterr()
+    assert "expects images at" in captured.err and "2 of 4 images could not be read" in captured.err
+    # the same image given with its scale: rescaled to the model's scale, same prediction
+    px = json.loads((dataset / "tiny" / "scenes" / "tiny-000008" / "render.json").read_text())["mm_per_px"]
+    assert main(["predict", "--model", str(model), "--mm-per-px", str(px), "--out", str(tmp_path / "p.csv"), str(imgs / "a.png")]) == 0
+    line = (tmp_path / "p.csv").read_text().splitlines()[1].split(",")
+    assert float(line[2]) == pytest.approx(good[0]["d50_mm"], rel=1e-4)
+
+
+def test_prepare_rescales_to_the_model_scale():
+    from psdfactory.predict import network_scale, prepare
+
+    meta = {"mm_per_px": 0.5, "image_resolution": 256, "input_size": 128}
+    assert network_scale(meta) == 1.0
+    img = np.zeros((100, 300, 3), np.uint8)
+    assert prepare(img, meta, mm_per_px=0.5).shape == (1, 3, 50, 150)
+    assert prepare(img, meta, mm_per_px=None).shape == (1, 3, 128, 128)
+
+
+def test_export_matches_pytorch(trained, tmp_path):
+    from psdfactory.predict import export
+
+    rep = export(trained[0] / "model.pt", tmp_path / "exp", log=lambda m: None)
+    assert (tmp_path / "exp" / "model.onnx").is_file() and (tmp_path / "exp" / "model.torchscript.pt").is_file()
+    assert rep["onnx"]["max_abs_diff_mm"] < 1e-3 and rep["torchscript"]["max_abs_diff_mm"] < 1e-3
+    ts = torch.jit.load(str(tmp_path / "exp" / "model.torchscript.pt"))
+    out = ts(torch.randn(3, 3, 32, 32))
+    assert out.shape == (3, 3)
+
+
+def test_train_params_slice_ignores_scene_settings():
+    a = tiny_config()
+    b = tiny_config()
+    b["render"]["resolution"] = 512
+    assert psd_config.train_params(a, "resnet50") == psd_config.train_params(b, "resnet50")
+    b["train"]["epochs"] = 3
+    assert psd_config.train_params(a, "resnet50") != psd_config.train_params(b, "resnet50")
+    assert psd_config.train_params(a, "inception_v3")["input_size"] == 299
+
+
+def test_load_model_rejects_other_files(tmp_path):
+    from psdfactory.train import load_model
+
+    bad = tmp_path / "x.pt"
+    torch.save({"hello": 1}, bad)
+    with pytest.raises(PsdError, match="not a psdfactory model"):
+        load_model(bad)
+    with pytest.raises(PsdError, match="not found"):
+        load_model(tmp_path / "none.pt")
