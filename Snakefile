@@ -32,3 +32,9 @@ rule all:
     default_target: True
     input:
         all_targets(),
+
+
+rule scenes:
+    """Only the datasets: every scene, the manifests and the contact sheets (no training)."""
+    input:
+        scene_targets(),

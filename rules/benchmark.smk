@@ -9,9 +9,7 @@ rule benchmark:
     params:
         stage=benchmark_params,
         results=lambda wildcards, input: results_root(input.manifests[0], 4),
-    threads: workflow.cores
-    resources:
-        gpu=gpu_count,
+    threads: all_cores
     log:
         f"{RESULTS}/bench/{{arch}}.log",
     conda:

@@ -35,6 +35,15 @@ wildcard_constraints:
     arch="[a-z][a-z0-9_]*",
 
 
+def all_cores(wildcards):
+    """Every core of a local run (so timing jobs run alone); on a cluster, where Snakemake has
+    no core count, 8 unless the profile's set-threads says otherwise."""
+    try:
+        return workflow.cores
+    except WorkflowError:
+        return 8
+
+
 def scene_path(name):
     """A file of a scene folder, as an output/input pattern."""
     return f"{RESULTS}/{{dataset}}/scenes/{{scene}}/{name}"
@@ -87,11 +96,6 @@ def benchmark_params(wildcards):
     return as_json({"dataset": config["train"]["dataset"], **config["benchmark"]})
 
 
-def gpu_count(wildcards):
-    """GPUs a training/benchmark job asks for: one unless the config pins the CPU."""
-    return 0 if config["train"]["device"] == "cpu" else 1
-
-
 def shard_scene_files(name):
     """Input function: one file of every scene of a manifest shard."""
 
@@ -114,10 +118,19 @@ def dataset_shards(table):
     return lambda wildcards: shard_files(wildcards.dataset, table)
 
 
-def all_targets():
+def scene_targets():
+    """Manifests, contact sheets, and every scene's image and mask: naming them as targets
+    makes a deleted image or mask regenerate (Snakemake does not remake a missing
+    intermediate file whose downstream outputs are up to date)."""
     targets = []
     for ds in DATASETS:
         targets += shard_files(ds, "scenes") + shard_files(ds, "particles")
         targets.append(f"{RESULTS}/{ds}/contact_sheet.png")
-    targets += [f"{RESULTS}/report/report.html", f"{RESULTS}/report/report.md"]
+        for i in range(config["datasets"][ds]["n_scenes"]):
+            scene = f"{RESULTS}/{ds}/scenes/{scene_id(ds, i)}"
+            targets += [f"{scene}/image.png", f"{scene}/mask.png"]
     return targets
+
+
+def all_targets():
+    return scene_targets() + [f"{RESULTS}/report/report.html", f"{RESULTS}/report/report.md"]

@@ -22,7 +22,7 @@ rule evaluate:
         stage=evaluate_params,
         results=lambda wildcards, input: results_root(input.manifests[0], 4),
         out_dir=lambda wildcards, output: os.path.dirname(output.metrics),
-    threads: workflow.cores
+    threads: all_cores
     log:
         f"{RESULTS}/eval/{{arch}}/evaluate.log",
     conda:

@@ -8,9 +8,7 @@ rule train:
         stage=train_params,
         results=lambda wildcards, input: results_root(input.manifests[0], 4),
         out_dir=lambda wildcards, output: os.path.dirname(output.model),
-    threads: workflow.cores
-    resources:
-        gpu=gpu_count,
+    threads: all_cores
     log:
         f"{RESULTS}/models/{{arch}}/train.log",
     conda:

@@ -1,15 +1,11 @@
 """One tiny end-to-end run of the Snakemake workflow (system-level)."""
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
-import yaml
 
-from .conftest import REPO
+from .workflow_helpers import snakemake, write_config
 
 pytestmark = pytest.mark.workflow
 
@@ -35,16 +31,9 @@ TINY = {
 }
 
 
-def snakemake(*args, cwd=REPO):
-    exe = Path(sys.executable).with_name("snakemake")
-    return subprocess.run([str(exe), *args], cwd=cwd, capture_output=True, text=True)
-
-
 def test_tiny_workflow_end_to_end(tmp_path):
-    cfg = dict(TINY, results=str(tmp_path / "results"))
-    cfgfile = tmp_path / "tiny.yaml"
-    cfgfile.write_text(yaml.safe_dump(cfg))
-    r = snakemake("-j2", "--configfile", str(cfgfile))
+    cfgfile = write_config(tmp_path / "tiny.yaml", dict(TINY, results=str(tmp_path / "results")))
+    r = snakemake("-j2", "--configfile", str(cfgfile), workdir=tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]
     res = tmp_path / "results"
     scenes = pq.read_table(res / "train" / "manifest" / "scenes")
@@ -66,7 +55,7 @@ def test_tiny_workflow_end_to_end(tmp_path):
     html = (res / "report" / "report.html").read_text()
     assert "Inference speed" in html and "efficientnet_b0" in html
     # a second run has nothing to do
-    r = snakemake("-n", "--configfile", str(cfgfile))
+    r = snakemake("-n", "--configfile", str(cfgfile), workdir=tmp_path)
     assert r.returncode == 0 and "Nothing to be done" in r.stdout + r.stderr
 
 

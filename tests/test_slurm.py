@@ -1,0 +1,92 @@
+"""`snakemake --profile slurm` on a real single-node SLURM cluster (slurm/cluster.sh).
+
+Marked `slurm`; CI runs it. It needs root (the script installs and starts slurmctld, slurmd,
+slurmdbd, munge and a private MariaDB).
+"""
+
+import copy
+import filecmp
+import os
+import subprocess
+import time
+
+import pyarrow.parquet as pq
+import pytest
+
+from .workflow_helpers import REPO, snakemake, write_config
+
+pytestmark = [pytest.mark.slurm, pytest.mark.workflow]
+
+CLUSTER = REPO / "slurm" / "cluster.sh"
+STATE = "/var/tmp/psdfactory-slurm-test"
+
+TINY = {
+    "seed": 5,
+    "datasets": {"train": {"n_scenes": 3, "shard_size": 2, "table_size": 40, "count": [8, 12],
+                           "size": {"mean": [4, 6], "sigma": [1, 2], "bounds": [1, 8]}}},
+    "render": {"resolution": 32},
+}
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    if os.geteuid() != 0:
+        pytest.skip("bringing up SLURM needs root")
+    env = dict(os.environ, PSD_SLURM_DIR=STATE)
+    up = subprocess.run(["bash", str(CLUSTER), "up"], env=env, capture_output=True, text=True, timeout=1200)
+    assert up.returncode == 0, up.stdout + up.stderr
+    env["SLURM_CONF"] = f"{STATE}/etc/slurm.conf"
+    env.update(PSD_SLURM_ACCOUNT="psdfactory", PSD_SLURM_PARTITION="local", PSD_SLURM_GPU_PARTITION="local")
+    yield env
+    subprocess.run(["bash", str(CLUSTER), "down"], env=env, capture_output=True, text=True, timeout=120)
+
+
+def sacct_states(env, since: str) -> list[tuple[str, str]]:
+    r = subprocess.run(["sacct", "-X", "-n", "-P", "-S", since, "-o", "JobName,State"], env=env,
+                       capture_output=True, text=True, check=True)
+    return [tuple(line.split("|")[:2]) for line in r.stdout.splitlines() if line.strip()]
+
+
+def test_scene_stages_run_through_slurm_and_match_a_local_run(cluster, tmp_path):
+    since = time.strftime("%Y-%m-%dT%H:%M:%S")
+    slurm_work, local_work = tmp_path / "slurm", tmp_path / "local"
+    for w in (slurm_work, local_work):
+        w.mkdir()
+    cfg = write_config(slurm_work / "c.yaml", dict(copy.deepcopy(TINY), results=str(slurm_work / "results")))
+    r = snakemake("scenes", "--profile", str(REPO / "slurm"), "--configfile", str(cfg),
+                  "--slurm-init-seconds-before-status-checks", "2", "--latency-wait", "10",
+                  workdir=slurm_work, env=cluster)
+    assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
+    states = sacct_states(cluster, since)
+    assert states, "sacct shows no jobs: nothing went through SLURM"
+    assert all(s == "COMPLETED" for _, s in states), states
+
+    cfg = write_config(local_work / "c.yaml", dict(copy.deepcopy(TINY), results=str(local_work / "results")))
+    r = snakemake("-j2", "scenes", "--configfile", str(cfg), workdir=local_work)
+    assert r.returncode == 0, r.stderr[-3000:]
+    a = pq.read_table(slurm_work / "results" / "train" / "manifest" / "scenes").sort_by("scene_id")
+    b = pq.read_table(local_work / "results" / "train" / "manifest" / "scenes").sort_by("scene_id")
+    cols = [c for c in a.column_names if c not in ("image_path", "mask_path")]
+    assert a.select(cols).equals(b.select(cols))
+    for i in range(3):
+        for f in ("image.png", "mask.png", "poses.parquet"):
+            sa = slurm_work / "results" / "train" / "scenes" / f"train-{i:06d}" / f
+            sb = local_work / "results" / "train" / "scenes" / f"train-{i:06d}" / f
+            if f.endswith(".png"):
+                assert filecmp.cmp(sa, sb, shallow=False), f"{f} of scene {i} differs"
+
+
+def test_failing_job_is_retried_then_the_run_fails(cluster, tmp_path):
+    since = time.strftime("%Y-%m-%dT%H:%M:%S")
+    cfg = copy.deepcopy(TINY)
+    cfg["datasets"]["train"]["n_scenes"] = 1
+    cfg["physics"] = {"max_time_s": 0.01, "retries": 0, "quality": {"min_settled_fraction": 1.0}}
+    cfg["results"] = str(tmp_path / "results")
+    r = snakemake("scenes", "--profile", str(REPO / "slurm"), "--configfile", str(write_config(tmp_path / "c.yaml", cfg)),
+                  "--slurm-init-seconds-before-status-checks", "2", "--latency-wait", "5", "--retries", "1",
+                  workdir=tmp_path, env=cluster)
+    assert r.returncode != 0
+    failed = [n for n, s in sacct_states(cluster, since) if s == "FAILED"]
+    assert len(failed) >= 2, f"expected the first try and one retry to fail on SLURM: {failed}"
+    log = (tmp_path / "results" / "train" / "logs" / "simulate" / "train-000000.log").read_text()
+    assert "quality bounds" in log
