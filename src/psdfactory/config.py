@@ -13,6 +13,7 @@ from pathlib import Path
 from . import PsdError
 
 SCHEMA = Path(__file__).with_name("config.schema.yaml")
+DEFAULT_INPUT_SIZE = {"inception_v3": 299}  # network input px where not 224 (the design size)
 
 
 def validate(config: dict) -> dict:
@@ -168,5 +169,3 @@ def train_params(config: dict, arch: str) -> dict:
     out.update(arch=arch, seed=config["seed"], input_size=int(t["input_size"].get(arch, DEFAULT_INPUT_SIZE.get(arch, 224))))
     return out
 
-
-DEFAULT_INPUT_SIZE = {"inception_v3": 299}

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 
 import numpy as np
@@ -109,6 +108,3 @@ def plot_history(history_csv: Path, arch: str, out: Path) -> None:
         fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)
 
-
-def load_metrics(path: Path) -> dict:
-    return json.loads(Path(path).read_text())

@@ -226,7 +226,6 @@ def render_tiny(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.nd
             lightDiffuseCoeff=look.light_intensity * (1 - look.ambient),
             lightSpecularCoeff=0.05,
             renderer=pb.ER_TINY_RENDERER,
-            flags=pb.ER_NO_SEGMENTATION_MASK * 0,
             physicsClientId=cid,
         )
     finally:
