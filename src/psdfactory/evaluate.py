@@ -10,7 +10,7 @@ import torch
 
 from . import PsdError
 from .data import SceneImages, manifest_rows
-from .io import atomic_path, write_json
+from .io import atomic_path, pyplot, save_figure, write_json
 from .metrics import NAMES, regression_metrics
 from .train import load_model, pick_device, pick_precision, predict
 
@@ -61,11 +61,7 @@ def evaluate(model_path: Path, results_root: Path, datasets: list[str], out_dir:
 
 
 def plot_scatter(rows: list[dict], arch: str, out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(11, 3.8))
     datasets = sorted({r["dataset"] for r in rows})
     for ax, n in zip(axes, NAMES):
@@ -81,17 +77,11 @@ def plot_scatter(rows: list[dict], arch: str, out: Path) -> None:
         ax.set_ylabel("predicted (mm)")
     axes[0].legend(fontsize=8)
     fig.tight_layout()
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
+    save_figure(fig, out, dpi=100)
 
 
 def plot_history(history_csv: Path, arch: str, out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     with open(history_csv) as f:
         rows = list(csv.DictReader(f))
     ep = [int(r["epoch"]) for r in rows]
@@ -104,7 +94,5 @@ def plot_history(history_csv: Path, arch: str, out: Path) -> None:
     ax.set_title(f"{arch}: loss")
     ax.legend()
     fig.tight_layout()
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
+    save_figure(fig, out, dpi=100)
 

@@ -18,7 +18,7 @@ import numpy as np
 from scipy import ndimage
 
 from . import PsdError
-from .physics import CM, quat_to_matrix
+from .physics import CM
 from .seeding import rng_for
 from .geometry import Geometry
 

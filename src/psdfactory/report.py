@@ -12,17 +12,13 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .io import atomic_path
+from .io import atomic_path, pyplot, save_figure
 from .manifest import read_scenes
 from .metrics import NAMES
 
 
 def label_histograms(results_root: Path, datasets: list[str], out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, axes = plt.subplots(2, 3, figsize=(11, 5.5))
     for ds in datasets:
         t = read_scenes(results_root, ds)
@@ -34,9 +30,7 @@ def label_histograms(results_root: Path, datasets: list[str], out: Path) -> None
                 ax.set_xlabel("mm")
     axes[0, 0].legend(fontsize=8)
     fig.tight_layout()
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
+    save_figure(fig, out, dpi=90)
 
 
 def _fmt(v, nd=4) -> str:
@@ -146,7 +140,7 @@ def build_report(results_root: Path, config: dict, models_dir: Path, eval_dir: P
     cfg_yaml = yaml.safe_dump(config, sort_keys=False)
     when = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
 
-    md = [f"# psdfactory report", "", f"Generated {when} by psdfactory {__version__}.", ""]
+    md = ["# psdfactory report", "", f"Generated {when} by psdfactory {__version__}.", ""]
     if warning:
         md += [f"> **Warning:** {warning}", ""]
     md += ["## Datasets", "", _md_table(count_head, count_rows), ""]

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import atomic_path, read_png
+from .io import pyplot, read_png, save_figure
 from .manifest import read_scenes
 
 
@@ -20,11 +20,7 @@ def colorize_mask(mask: np.ndarray) -> np.ndarray:
 
 
 def contact_sheet(results_root: Path, dataset: str, out: Path, n: int = 6) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     scenes = read_scenes(results_root, dataset).sort_by("index").slice(0, n).to_pylist()
     fig, axes = plt.subplots(len(scenes), 2, figsize=(6.4, 3.2 * len(scenes)), squeeze=False)
     for row, sc in zip(axes, scenes):
@@ -46,7 +42,5 @@ def contact_sheet(results_root: Path, dataset: str, out: Path, n: int = 6) -> Pa
             ax.set_xticks([])
             ax.set_yticks([])
     fig.tight_layout()
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, out, dpi=110)
     return out
