@@ -70,10 +70,8 @@ def cmd_check_config(a: argparse.Namespace) -> None:
 def cmd_train(a: argparse.Namespace) -> None:
     from .train import TrainParams, train
 
-    params = _params(a.params)
-    if a.threads:
-        params["threads"] = a.threads
-    train(TrainParams.from_dict(params), Path(a.results), Path(a.out_dir))
+    _threads(a.threads)
+    train(TrainParams.from_dict(_params(a.params)), Path(a.results), Path(a.out_dir))
 
 
 def cmd_evaluate(a: argparse.Namespace) -> None:

@@ -38,6 +38,3 @@ class Geometry:
         v = self.vertices[self.vert_offsets[i] : self.vert_offsets[i + 1]].astype(np.float64)
         f = self.faces[self.face_offsets[i] : self.face_offsets[i + 1]]
         return v, f
-
-    def bounding_radius(self) -> np.ndarray:
-        return np.array([np.linalg.norm(self.mesh(i)[0], axis=1).max() for i in range(len(self))])

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pyarrow as pa
 
 from . import PsdError
@@ -117,8 +116,3 @@ def read_scenes(results_root: Path, dataset: str) -> pa.Table:
     import pyarrow.parquet as pq
 
     return pq.read_table(path)
-
-
-def split_counts(scenes: pa.Table) -> dict[str, int]:
-    splits, counts = np.unique(scenes.column("split").to_numpy(zero_copy_only=False), return_counts=True)
-    return {str(s): int(c) for s, c in zip(splits, counts)}

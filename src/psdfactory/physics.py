@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -288,7 +288,3 @@ def simulate(geometry: Geometry, xy: np.ndarray, table_size: float, entropy: lis
         f"simulation failed its quality bounds after {p.retries + 1} attempts:\n  " + "\n  ".join(failures)
         + "\nRelax config physics.quality, lengthen physics.max_time_s, or check the particle sizes."
     )
-
-
-def params_dict(p: PhysicsParams) -> dict:
-    return asdict(p)

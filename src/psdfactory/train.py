@@ -43,7 +43,6 @@ class TrainParams:
     aux_loss_weight: float = 0.4
     augment: bool = True
     seed: int = 0
-    threads: int = 0  # 0 = leave torch's default
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainParams":
@@ -203,8 +202,6 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, log=print) -> 
 
     torch.manual_seed(params.seed)
     np.random.seed(params.seed % 2**32)
-    if params.threads:
-        torch.set_num_threads(params.threads)
     device = pick_device(params.device)
     precision = pick_precision(params.precision, device)
     size = input_size(params.arch, {params.arch: params.input_size})
