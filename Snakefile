@@ -28,6 +28,7 @@ include: "rules/benchmark.smk"
 include: "rules/report.smk"
 
 
+
 rule all:
     default_target: True
     input:

@@ -11,6 +11,7 @@ from snakemake.exceptions import WorkflowError
 
 from psdfactory import PsdError
 from psdfactory import config as psd_config
+from psdfactory.scene import SCENE_FILES, STAGES
 from psdfactory.seeding import scene_id, scene_index
 
 try:
@@ -32,6 +33,7 @@ wildcard_constraints:
     dataset="[A-Za-z][A-Za-z0-9_]*",
     scene="[A-Za-z][A-Za-z0-9_]*-[0-9]{6}",
     shard="[0-9]{5}",
+    batch="[0-9]{5}",
     arch="[a-z][a-z0-9_]*",
 
 
@@ -68,6 +70,10 @@ def sample_params(wildcards):
     return as_json(psd_config.sample_params(config, wildcards.dataset, scene_index(wildcards.scene)))
 
 
+def sample_batch_params(wildcards):
+    return as_json(psd_config.sample_params(config, wildcards.dataset))
+
+
 def simulate_params(wildcards):
     return as_json(psd_config.simulate_params(config))
 
@@ -96,17 +102,44 @@ def benchmark_params(wildcards):
     return as_json({"dataset": config["train"]["dataset"], **config["benchmark"]})
 
 
-def shard_scene_files(name):
-    """Input function: one file of every scene of a manifest shard."""
+# ---- scene batches (scenes_per_job > 1) ----------------------------------------------------
+# A batch job runs one stage over N scenes and skips those already up to date (per scene:
+# outputs newer than inputs, same params); its stamp lists the scenes. Rerun triggers work on
+# the stamps: a changed stage slice or scene list reruns the batch, a newer upstream stamp
+# reruns the batch after it, and within a batch only the scenes that changed are regenerated.
 
-    def files(wildcards):
-        rng = psd_config.shard_indices(config, wildcards.dataset, int(wildcards.shard))
-        return [
-            f"{RESULTS}/{wildcards.dataset}/scenes/{scene_id(wildcards.dataset, i)}/{name}"
-            for i in rng
-        ]
+BATCHED = config["scenes_per_job"] > 1
 
-    return files
+
+def batch_stamp(stage):
+    return f"{RESULTS}/{{dataset}}/batches/{stage}/batch-{{batch}}.json"
+
+
+def batch_log(stage):
+    return f"{RESULTS}/{{dataset}}/logs/{stage}/batch-{{batch}}.log"
+
+
+def scene_dirs(dataset, indices):
+    return [f"{RESULTS}/{dataset}/scenes/{scene_id(dataset, i)}" for i in indices]
+
+
+def batch_scene_dirs(wildcards):
+    return scene_dirs(wildcards.dataset, psd_config.batch_indices(config, wildcards.dataset, int(wildcards.batch)))
+
+
+def shard_scene_dirs(wildcards):
+    return scene_dirs(wildcards.dataset, psd_config.shard_indices(config, wildcards.dataset, int(wildcards.shard)))
+
+
+def shard_inputs(wildcards):
+    """Inputs of a manifest shard: the labels, particles and image of each of its scenes (one
+    job per scene), or the label stamps of the batches that hold them (scenes_per_job > 1)."""
+    if BATCHED:
+        batches = psd_config.shard_batches(config, wildcards.dataset, int(wildcards.shard))
+        return {"stamps": [f"{RESULTS}/{wildcards.dataset}/batches/label/batch-{b:05d}.json" for b in batches]}
+    dirs = shard_scene_dirs(wildcards)
+    return {name: [f"{d}/{name}.{ext}" for d in dirs]
+            for name, ext in (("labels", "json"), ("particles", "parquet"), ("image", "png"))}
 
 
 def shard_files(dataset, table):
@@ -116,12 +149,6 @@ def shard_files(dataset, table):
 
 def dataset_shards(table):
     return lambda wildcards: shard_files(wildcards.dataset, table)
-
-
-SCENE_FILES = (
-    "spec.json", "geometry.npz", "poses.parquet", "simulate.json",
-    "image.png", "mask.png", "render.json", "labels.json", "particles.parquet",
-)
 
 
 def missing_scene_files(ds):
@@ -139,13 +166,44 @@ def missing_scene_files(ds):
     return missing
 
 
+def batches_to_repair(ds):
+    """Batches with scene files deleted by hand, as {stamp: first missing file}: for each scene
+    folder with a missing file, the stamp of the first stage whose output is missing (the
+    stages after it follow by modification time)."""
+    repair = {}
+    for i in range(config["datasets"][ds]["n_scenes"]):
+        d = f"{RESULTS}/{ds}/scenes/{scene_id(ds, i)}"
+        if not os.path.isdir(d):
+            continue
+        for stage, st in STAGES.items():
+            gone = [f for f in st.outputs if not os.path.exists(f"{d}/{f}")]
+            if gone:
+                batch = i // config["scenes_per_job"]
+                repair.setdefault(f"{RESULTS}/{ds}/batches/{stage}/batch-{batch:05d}.json", f"{d}/{gone[0]}")
+                break
+    return repair
+
+
+def repair_targets(ds):
+    """The stamps of batches to repair, as targets. A stamp that vouches for missing files is
+    wrong, so it is removed (Snakemake cannot be told otherwise that it is out of date): the
+    batch then reruns and regenerates only the missing scenes. Removed only in the main
+    process, not in the jobs that Snakemake runs remotely (they re-parse this file)."""
+    repair = batches_to_repair(ds)
+    for stamp, missing in repair.items():
+        if os.path.exists(stamp) and workflow.is_main_process:
+            print(f"psdfactory: {missing} is missing; removing {stamp} so that batch reruns", file=sys.stderr)
+            os.remove(stamp)
+    return list(repair)
+
+
 def scene_targets():
     """Manifests and contact sheets of every dataset (+ any scene file deleted by hand)."""
     targets = []
     for ds in DATASETS:
         targets += shard_files(ds, "scenes") + shard_files(ds, "particles")
         targets.append(f"{RESULTS}/{ds}/contact_sheet.png")
-        targets += missing_scene_files(ds)
+        targets += repair_targets(ds) if BATCHED else missing_scene_files(ds)
     return targets
 
 

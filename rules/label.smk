@@ -18,3 +18,22 @@ rule label:
         "../envs/scene.yaml"
     shell:
         "psdfactory label --params {params.stage:q} {params.scene_dir:q} > {log:q} 2>&1"
+
+
+rule label_batch:
+    """Label a batch of scenes (scenes_per_job > 1), skipping those up to date."""
+    input:
+        batch_stamp("render"),
+    output:
+        stamp=batch_stamp("label"),
+    params:
+        stage=label_params,
+        scene_dirs=batch_scene_dirs,
+    threads: all_cores
+    log:
+        batch_log("label"),
+    conda:
+        "../envs/scene.yaml"
+    shell:
+        "psdfactory label --params {params.stage:q} --skip-up-to-date --jobs {threads}"
+        " --stamp {output.stamp:q} {params.scene_dirs:q} > {log:q} 2>&1"

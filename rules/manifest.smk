@@ -1,15 +1,13 @@
 rule manifest_shard:
     input:
-        labels=shard_scene_files("labels.json"),
-        particles=shard_scene_files("particles.parquet"),
-        images=shard_scene_files("image.png"),
+        unpack(shard_inputs),
     output:
         scenes=f"{RESULTS}/{{dataset}}/manifest/scenes/shard-{{shard}}.parquet",
         particles=f"{RESULTS}/{{dataset}}/manifest/particles/shard-{{shard}}.parquet",
     params:
         stage=manifest_params,
         results=lambda wildcards, output: results_root(output.scenes, 4),
-        scene_dirs=lambda wildcards, input: [os.path.dirname(p) for p in input.labels],
+        scene_dirs=lambda wildcards, input: shard_scene_dirs(wildcards),
     log:
         f"{RESULTS}/{{dataset}}/logs/manifest/shard-{{shard}}.log",
     conda:

@@ -16,3 +16,22 @@ rule render:
         "../envs/scene.yaml"
     shell:
         "psdfactory render --params {params.stage:q} {params.scene_dir:q} > {log:q} 2>&1"
+
+
+rule render_batch:
+    """Render a batch of scenes (scenes_per_job > 1), skipping those up to date."""
+    input:
+        batch_stamp("simulate"),
+    output:
+        stamp=batch_stamp("render"),
+    params:
+        stage=render_params,
+        scene_dirs=batch_scene_dirs,
+    threads: all_cores
+    log:
+        batch_log("render"),
+    conda:
+        "../envs/scene.yaml"
+    shell:
+        "psdfactory render --params {params.stage:q} --skip-up-to-date --jobs {threads}"
+        " --stamp {output.stamp:q} {params.scene_dirs:q} > {log:q} 2>&1"

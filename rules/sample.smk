@@ -11,3 +11,20 @@ rule sample:
         "../envs/scene.yaml"
     shell:
         "psdfactory sample --params {params.stage:q} {params.scene_dir:q} > {log:q} 2>&1"
+
+
+rule sample_batch:
+    """Sample a batch of scenes (scenes_per_job > 1), skipping those up to date."""
+    output:
+        stamp=batch_stamp("sample"),
+    params:
+        stage=sample_batch_params,
+        scene_dirs=batch_scene_dirs,
+    threads: all_cores
+    log:
+        batch_log("sample"),
+    conda:
+        "../envs/scene.yaml"
+    shell:
+        "psdfactory sample --params {params.stage:q} --skip-up-to-date --jobs {threads}"
+        " --stamp {output.stamp:q} {params.scene_dirs:q} > {log:q} 2>&1"

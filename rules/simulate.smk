@@ -14,3 +14,22 @@ rule simulate:
         "../envs/scene.yaml"
     shell:
         "psdfactory simulate --params {params.stage:q} {params.scene_dir:q} > {log:q} 2>&1"
+
+
+rule simulate_batch:
+    """Simulate a batch of scenes (scenes_per_job > 1), skipping those up to date."""
+    input:
+        batch_stamp("sample"),
+    output:
+        stamp=batch_stamp("simulate"),
+    params:
+        stage=simulate_params,
+        scene_dirs=batch_scene_dirs,
+    threads: all_cores
+    log:
+        batch_log("simulate"),
+    conda:
+        "../envs/scene.yaml"
+    shell:
+        "psdfactory simulate --params {params.stage:q} --skip-up-to-date --jobs {threads}"
+        " --stamp {output.stamp:q} {params.scene_dirs:q} > {log:q} 2>&1"

@@ -20,28 +20,11 @@ def _params(text: str) -> dict:
     return value
 
 
-def cmd_sample(a: argparse.Namespace) -> None:
-    from .scene import run_sample
+def cmd_stage(a: argparse.Namespace) -> None:
+    from .scene import run_scenes
 
-    run_sample(_params(a.params), Path(a.scene_dir))
-
-
-def cmd_simulate(a: argparse.Namespace) -> None:
-    from .scene import run_simulate
-
-    run_simulate(_params(a.params), Path(a.scene_dir))
-
-
-def cmd_render(a: argparse.Namespace) -> None:
-    from .scene import run_render
-
-    run_render(_params(a.params), Path(a.scene_dir))
-
-
-def cmd_label(a: argparse.Namespace) -> None:
-    from .scene import run_label
-
-    run_label(_params(a.params), Path(a.scene_dir))
+    run_scenes(a.command, _params(a.params), [Path(d) for d in a.scene_dirs], skip_up_to_date=a.skip_up_to_date,
+               jobs=a.jobs, stamp=Path(a.stamp) if a.stamp else None)
 
 
 def cmd_manifest(a: argparse.Namespace) -> None:
@@ -141,16 +124,20 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--version", action="version", version=f"psdfactory {__version__}")
     sub = ap.add_subparsers(dest="command", required=True)
 
-    for name, fn, helptext in [
-        ("sample", cmd_sample, "draw a scene's particles → spec.json, geometry.npz"),
-        ("simulate", cmd_simulate, "settle the particles with pybullet → poses.parquet, simulate.json"),
-        ("render", cmd_render, "render the bed → image.png, mask.png, render.json"),
-        ("label", cmd_label, "PSD labels → labels.json, particles.parquet"),
+    for name, helptext in [
+        ("sample", "draw a scene's particles → spec.json, geometry.npz"),
+        ("simulate", "settle the particles with pybullet → poses.parquet, simulate.json"),
+        ("render", "render the bed → image.png, mask.png, render.json"),
+        ("label", "PSD labels → labels.json, particles.parquet"),
     ]:
         p = sub.add_parser(name, help=helptext)
         p.add_argument("--params", required=True, help="the stage's config slice as JSON")
-        p.add_argument("scene_dir")
-        p.set_defaults(func=fn)
+        p.add_argument("--skip-up-to-date", action="store_true",
+                       help="skip scenes whose outputs are newer than their inputs and made with these params")
+        p.add_argument("--jobs", type=int, default=1, help="scenes run in parallel processes")
+        p.add_argument("--stamp", help="write a summary JSON here once every scene succeeded")
+        p.add_argument("scene_dirs", nargs="+", metavar="scene_dir")
+        p.set_defaults(func=cmd_stage)
 
     p = sub.add_parser("manifest", help="gather scenes into one Parquet shard")
     p.add_argument("--params", required=True, help='JSON with "split" fractions')

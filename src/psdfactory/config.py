@@ -119,12 +119,12 @@ def semantic_problems(config: dict) -> list[str]:
 
 # ---- the slice of config each stage depends on ---------------------------------------------
 
-def sample_params(config: dict, dataset: str, index: int) -> dict:
+def sample_params(config: dict, dataset: str, index: int | None = None) -> dict:
+    """A dataset's sampling settings; with `index`, one scene's (else the scene runner adds it)."""
     ds = config["datasets"][dataset]
-    return {
+    out = {
         "seed": config["seed"],
         "dataset": dataset,
-        "index": int(index),
         "shape": ds["shape"],
         "shape_params": copy.deepcopy(ds["shape_params"]),
         "table_size": ds["table_size"],
@@ -132,6 +132,9 @@ def sample_params(config: dict, dataset: str, index: int) -> dict:
         "size": copy.deepcopy(ds["size"]),
         "placement": copy.deepcopy(ds["placement"]),
     }
+    if index is not None:
+        out["index"] = int(index)
+    return out
 
 
 def simulate_params(config: dict) -> dict:
@@ -159,6 +162,22 @@ def shard_indices(config: dict, dataset: str, shard: int) -> range:
     ds = config["datasets"][dataset]
     lo = shard * ds["shard_size"]
     return range(lo, min(lo + ds["shard_size"], ds["n_scenes"]))
+
+
+def n_batches(config: dict, dataset: str) -> int:
+    return -(-config["datasets"][dataset]["n_scenes"] // config["scenes_per_job"])
+
+
+def batch_indices(config: dict, dataset: str, batch: int) -> range:
+    n = config["scenes_per_job"]
+    return range(batch * n, min((batch + 1) * n, config["datasets"][dataset]["n_scenes"]))
+
+
+def shard_batches(config: dict, dataset: str, shard: int) -> range:
+    """The scene batches that hold a manifest shard's scenes."""
+    rng = shard_indices(config, dataset, shard)
+    n = config["scenes_per_job"]
+    return range(rng.start // n, (rng.stop - 1) // n + 1)
 
 
 def train_params(config: dict, arch: str) -> dict:

@@ -6,18 +6,26 @@ Scene folder ``<results>/<dataset>/scenes/<scene_id>/``:
   simulate → poses.parquet, simulate.json
   render   → image.png, mask.png, render.json
   label    → labels.json, particles.parquet
+  stages/<stage>.json: the params each stage last ran with (written after its outputs)
+
+``run_scenes`` runs one stage over many scene folders: the Snakemake rules call it with one
+folder (one job per scene) or a batch of folders, skipping the scenes that are up to date.
 """
 
 from __future__ import annotations
 
+import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from . import PsdError
 from .io import read_json, read_npz, read_parquet, read_png, write_json, write_npz, write_parquet, write_png
 from .geometry import Geometry
+from .seeding import scene_index
 
 POSE_COLUMNS = ("particle_id", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "settled")
 
@@ -156,3 +164,135 @@ def run_label(params: dict, scene_dir: Path) -> dict:
         f"{record['d90_mm']:.2f} mm (number), {record['d10_v_mm']:.2f}/{record['d50_v_mm']:.2f}/"
         f"{record['d90_v_mm']:.2f} mm (volume); {record['n_visible']}/{n} visible")
     return record
+
+
+# ---- stages over many scenes -----------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Stage:
+    name: str
+    run: Callable[[dict, Path], object]
+    inputs: tuple[str, ...]
+    outputs: tuple[str, ...]
+
+
+STAGES = {
+    s.name: s
+    for s in (
+        Stage("sample", run_sample, (), ("spec.json", "geometry.npz")),
+        Stage("simulate", run_simulate, ("spec.json", "geometry.npz"), ("poses.parquet", "simulate.json")),
+        Stage("render", run_render, ("spec.json", "geometry.npz", "poses.parquet"), ("image.png", "mask.png", "render.json")),
+        Stage("label", run_label, ("spec.json", "geometry.npz", "poses.parquet", "simulate.json", "mask.png", "render.json"),
+              ("labels.json", "particles.parquet")),
+    )
+}
+SCENE_FILES = tuple(f for s in STAGES.values() for f in s.outputs)
+
+
+def record_path(scene_dir: Path, stage: str) -> Path:
+    return Path(scene_dir) / "stages" / f"{stage}.json"
+
+
+def scene_params(stage: str, params: dict, scene_dir: Path) -> dict:
+    """The params of one scene: `sample` takes its scene index from the folder name."""
+    if stage != "sample":
+        return params
+    scene_dir = Path(scene_dir)
+    dataset = params.get("dataset")
+    if dataset is not None and not scene_dir.name.startswith(f"{dataset}-"):
+        raise PsdError(f"{scene_dir}: folder name does not belong to dataset {dataset!r}")
+    try:
+        index = scene_index(scene_dir.name)
+    except ValueError as e:
+        raise PsdError(f"{scene_dir}: {e}") from None
+    return {**params, "index": index}
+
+
+def _canonical(params: dict) -> str:
+    return json.dumps(params, sort_keys=True, separators=(",", ":"))
+
+
+def up_to_date(stage: str, params: dict, scene_dir: Path) -> bool:
+    """Make's rule, per scene: the stage's outputs exist, it last ran with these params and no
+    input changed since (the record is written after the outputs, so it is the newest)."""
+    st, scene_dir = STAGES[stage], Path(scene_dir)
+    rec = record_path(scene_dir, stage)
+    try:
+        done = rec.stat().st_mtime_ns
+        if any(not (scene_dir / f).is_file() for f in st.outputs):
+            return False
+        if any((scene_dir / f).stat().st_mtime_ns > done for f in st.inputs):
+            return False
+        return json.loads(rec.read_text()).get("params") == json.loads(_canonical(params))
+    except (OSError, ValueError):
+        return False
+
+
+def run_stage(stage: str, params: dict, scene_dir: Path) -> None:
+    """Run one stage on one scene folder and record the params it ran with."""
+    from .io import write_json
+
+    scene_dir = Path(scene_dir)
+    p = scene_params(stage, params, scene_dir)
+    missing = [f for f in STAGES[stage].inputs if not (scene_dir / f).is_file()]
+    if missing:
+        raise PsdError(f"{scene_dir}: missing {', '.join(missing)}; run the stages before {stage} first")
+    scene_dir.mkdir(parents=True, exist_ok=True)
+    STAGES[stage].run(p, scene_dir)
+    write_json(record_path(scene_dir, stage), {"stage": stage, "params": json.loads(_canonical(p))})
+
+
+def _run_one(args: tuple[str, dict, str]) -> tuple[str, float, str | None]:
+    stage, params, scene_dir = args
+    t0 = time.perf_counter()
+    try:
+        run_stage(stage, params, Path(scene_dir))
+    except PsdError as e:
+        return scene_dir, time.perf_counter() - t0, str(e)
+    return scene_dir, time.perf_counter() - t0, None
+
+
+def run_scenes(stage: str, params: dict, scene_dirs: list[Path], skip_up_to_date: bool = False,
+               jobs: int = 1, stamp: Path | None = None) -> dict:
+    """Run `stage` over scene folders (in `jobs` processes), optionally skipping those up to
+    date; print progress with rate and ETA; write a summary `stamp` only if every scene succeeded.
+    """
+    if stage not in STAGES:
+        raise PsdError(f"unknown stage {stage!r}; one of {', '.join(STAGES)}")
+    dirs = [Path(d) for d in scene_dirs]
+    todo = [d for d in dirs if not (skip_up_to_date and up_to_date(stage, scene_params(stage, params, d), d))]
+    if skip_up_to_date:
+        log(f"{stage}: {len(todo)} of {len(dirs)} scenes to run, {len(dirs) - len(todo)} up to date")
+    t0 = time.perf_counter()
+    failed: list[str] = []
+    work = [(stage, params, str(d)) for d in todo]
+    jobs = max(1, min(int(jobs), len(work)))
+    if jobs == 1:
+        results = map(_run_one, work)
+    else:
+        import multiprocessing as mp
+
+        pool = mp.get_context("fork").Pool(jobs)
+        results = pool.imap_unordered(_run_one, work)
+    try:
+        for k, (d, _, err) in enumerate(results, 1):
+            if err:
+                failed.append(f"{d}: {err}")
+                log(f"{stage}: FAILED {d}: {err}")
+            if len(work) > 1:
+                el = time.perf_counter() - t0
+                log(f"{stage}: {k}/{len(work)} scenes, {k / el:.2f} scenes/s, ETA {(len(work) - k) * el / k:.0f} s")
+    finally:
+        if jobs > 1:
+            pool.close()
+            pool.join()
+    if failed:
+        raise PsdError(f"{stage} failed for {len(failed)} of {len(work)} scenes (the others are kept and "
+                       "will be skipped on a rerun):\n  " + "\n  ".join(failed))
+    summary = {"stage": stage, "scenes": [d.name for d in dirs], "ran": [d.name for d in todo],
+               "seconds": round(time.perf_counter() - t0, 3)}
+    if stamp is not None:
+        from .io import write_json
+
+        write_json(stamp, summary)
+    return summary
