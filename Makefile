@@ -6,8 +6,12 @@ BIN    := $(abspath $(VENV))/bin
 export PATH := $(BIN):$(PATH)
 
 STAMP := $(VENV)/.installed
+# Blender as a module (render.backend: cycles) needs numpy<2: its own venv. The render jobs find
+# it at .venv-blender/bin/python, or wherever PSD_BLENDER_PYTHON points.
+BLENDER_VENV  ?= .venv-blender
+BLENDER_STAMP := $(BLENDER_VENV)/.installed
 
-.PHONY: demo test test-fast lint report clean
+.PHONY: demo test test-fast lint report clean blender
 
 $(BIN)/python:
 	python3 -m venv $(VENV)
@@ -17,11 +21,20 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	$(BIN)/pip install --quiet -e ".[train,slurm,test]"
 	touch $@
 
+$(BLENDER_STAMP):
+	python3 -m venv $(BLENDER_VENV)
+	$(BLENDER_VENV)/bin/pip install --quiet --upgrade pip
+	$(BLENDER_VENV)/bin/pip install --quiet "bpy==4.5.15" "numpy<2"
+	$(BLENDER_VENV)/bin/python -c "import bpy; print('Blender', bpy.app.version_string)"
+	touch $@
+
+blender: $(BLENDER_STAMP)  ## the Blender environment of the cycles render backend
+
 demo: $(STAMP)  ## build the default dataset with snakemake -j2
 	$(BIN)/snakemake -j$(JOBS) --configfile $(CONFIG)
 
-test: $(STAMP)  ## the whole test suite, system-level tests included
-	$(BIN)/python -m pytest
+test: $(STAMP) $(BLENDER_STAMP)  ## the whole test suite, system-level and Cycles tests included
+	PSD_REQUIRE_BLENDER=1 $(BIN)/python -m pytest
 
 test-fast: $(STAMP)  ## unit tests only
 	$(BIN)/python -m pytest -m "not slow and not workflow"

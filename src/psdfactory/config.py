@@ -101,6 +101,13 @@ def semantic_problems(config: dict) -> list[str]:
     r = config["render"]
     for k in ("light_elevation_deg", "exposure", "blur_px", "noise_sigma", "ambient"):
         _ordered(f"render.{k}", r[k], problems)
+    if r["backend"] == "cycles":
+        for k in ("roughness", "sun_strength", "sun_angle_deg", "sky_strength"):
+            _ordered(f"render.cycles.{k}", r["cycles"][k], problems)
+        for name, ds in config["datasets"].items():
+            if ds["count"][1] > 32766:
+                problems.append(f"datasets.{name}.count: the cycles backend takes at most 32766 particles "
+                                "(Blender's object index tops out at 32767)")
     lo, hi = r["light_elevation_deg"]
     if not (0 < lo and hi <= 90):
         problems.append("render.light_elevation_deg: must lie in (0, 90]")
@@ -142,7 +149,12 @@ def simulate_params(config: dict) -> dict:
 
 
 def render_params(config: dict) -> dict:
-    return copy.deepcopy(config["render"])
+    """The render slice; the Cycles settings only when that backend renders (so editing them
+    does not rerun the fast backend's renders)."""
+    out = copy.deepcopy(config["render"])
+    if out["backend"] != "cycles":
+        out.pop("cycles", None)
+    return out
 
 
 def label_params(config: dict) -> dict:

@@ -1,5 +1,9 @@
 """Stage 3: render the settled bed top-down: ``image.png`` (RGB) and ``mask.png`` (16-bit ids).
 
+Backends (``render.backend``): ``tiny`` (below) and ``cycles`` (Blender, photorealistic, in
+``psdfactory.cycles_backend``). Both see the same camera, the same look (particle colours, light
+direction, table colour) drawn from the scene's render stream, and the same sensor model.
+
 The fast default backend (``tiny``) uses pybullet's TinyRenderer, which is CPU-only and costs
 per pixel. A far camera with a narrow field of view gives a metric top-down view in which the
 table exactly fills the image, so ``mm_per_px = table_size / resolution``.
@@ -18,6 +22,7 @@ import numpy as np
 from scipy import ndimage
 
 from . import PsdError
+from .cycles_backend import CyclesParams
 from .physics import CM
 from .seeding import rng_for
 from .geometry import Geometry
@@ -54,6 +59,7 @@ class RenderParams:
     blur_px: Range = (0.0, 0.5)
     noise_sigma: Range = (0.004, 0.015)  # read noise, fraction of full scale
     shot_noise: Range = (0.002, 0.01)
+    cycles: CyclesParams = field(default_factory=CyclesParams)  # the Cycles backend's settings
 
     @classmethod
     def from_dict(cls, d: dict) -> "RenderParams":
@@ -61,7 +67,9 @@ class RenderParams:
         for k, v in d.items():
             if k not in cls.__dataclass_fields__:
                 raise PsdError(f"unknown render setting {k!r}")
-            if k == "palette":
+            if k == "cycles":
+                v = CyclesParams.from_dict(v)
+            elif k == "palette":
                 v = tuple(tuple(map(float, c)) for c in v)
             elif isinstance(v, list):
                 v = tuple(v)
@@ -172,16 +180,13 @@ def fractal_noise(rng: np.random.Generator, shape: tuple[int, int], scales_px: t
     return out / len(scales_px)
 
 
-def render_tiny(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams, rng: np.random.Generator):
-    """TinyRenderer backend → (rgb float32 HxWx3 in [0,1] before sensor, ids int32 HxW, height mm, look)."""
+def tiny_raw(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams, look: Look):
+    """TinyRenderer at `supersample`× → (rgb float32 in [0,1], ids int32, height above the table in mm)."""
     import pybullet as pb
 
     n = len(geometry)
-    if n > MAX_PARTICLES_16BIT:
-        raise PsdError(f"{n} particles do not fit a 16-bit mask (max {MAX_PARTICLES_16BIT})")
     T = float(spec["table_size"])
     size = p.resolution * p.supersample
-    look = draw_look(rng, p, n)
     meshes = visual_meshes(geometry, smooth=spec["shape_type"] in ("granule", "ellipsoid"), scale=CM)
 
     cid = pb.connect(pb.DIRECT)
@@ -240,10 +245,27 @@ def render_tiny(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.nd
     ids = np.where(seg >= 0, lut[np.clip(seg, 0, len(lut) - 1)], 0)
     z_eye = far * near / (far - (far - near) * depth)
     height_mm = np.clip((H - z_eye) / CM, 0, None).astype(np.float32)
-    return rgb, ids, height_mm, look
+    return rgb, ids, height_mm
 
 
-BACKENDS: dict[str, Callable] = {"tiny": render_tiny}
+def render_tiny(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams,
+                look: Look, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The fast backend → (rgb float32 HxWx3 in [0,1] before the sensor, uint16 mask, extra metadata)."""
+    rgb, ids, height = tiny_raw(spec, geometry, pos_mm, quats, p, look)
+    rgb = shade_tiny(rgb, ids, height, look, p, mm_per_px(float(spec["table_size"]), p.resolution), rng)
+    s = p.supersample
+    mask = ids[s // 2 :: s, s // 2 :: s].astype(np.uint16)  # each block's centre sample: exact ids
+    return rgb, mask, {"supersample": s}
+
+
+def render_cycles(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams,
+                  look: Look, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, dict]:
+    from .cycles_backend import render_cycles as run
+
+    return run(spec, geometry, pos_mm, quats, p, look, rng)
+
+
+BACKENDS: dict[str, Callable] = {"tiny": render_tiny, "cycles": render_cycles}
 
 
 def downsample(a: np.ndarray, s: int) -> np.ndarray:
@@ -254,10 +276,9 @@ def downsample(a: np.ndarray, s: int) -> np.ndarray:
     return a.reshape(h // s, s, w // s, s, *a.shape[2:]).mean(axis=(1, 3))
 
 
-def finish_image(
-    rgb: np.ndarray, ids: np.ndarray, height: np.ndarray, look: Look, p: RenderParams, px_mm: float, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
-    """Texture, shadows, contact occlusion, anti-aliasing and the sensor model → (uint8 RGB, uint16 mask)."""
+def shade_tiny(rgb: np.ndarray, ids: np.ndarray, height: np.ndarray, look: Look, p: RenderParams, px_mm: float,
+               rng: np.random.Generator) -> np.ndarray:
+    """Texture, anti-aliasing, cast shadows and contact occlusion for the TinyRenderer image."""
     s = p.supersample
     # surface texture: table grain on table pixels, fine mottling on particles
     tex = fractal_noise(rng, ids.shape, (1.0 * s, 4.0 * s))
@@ -270,8 +291,11 @@ def finish_image(
     shadow = ndimage.gaussian_filter(shadow, 0.8)
     occl = np.clip((ndimage.gaussian_filter(hgt, 2.5 / px_mm) - hgt) / 3.0, 0, 1)
     light = (1 - look.shadow_strength * shadow) * (1 - look.occlusion_strength * occl)
-    img = rgb * light[..., None]
-    # camera: exposure, white balance, vignetting, defocus, noise
+    return rgb * light[..., None]
+
+
+def apply_sensor(img: np.ndarray, look: Look, p: RenderParams, rng: np.random.Generator) -> np.ndarray:
+    """The camera: exposure, white balance, vignetting, defocus and noise → uint8 RGB."""
     r = p.resolution
     yy, xx = np.mgrid[0:r, 0:r]
     rad2 = ((xx - r / 2) ** 2 + (yy - r / 2) ** 2) / (r / 2) ** 2 / 2
@@ -281,10 +305,7 @@ def finish_image(
     img = np.clip(img, 0, 1)
     noise = rng.standard_normal(img.shape).astype(np.float32)
     img = img + noise * np.sqrt(look.noise_sigma**2 + look.shot_noise * img)
-    image = np.clip(np.round(img * 255), 0, 255).astype(np.uint8)
-    # mask: the centre sample of each s×s block, so ids stay exact integers
-    mask = ids[s // 2 :: s, s // 2 :: s].astype(np.uint16)
-    return image, mask
+    return np.clip(np.round(img * 255), 0, 255).astype(np.uint8)
 
 
 def render_scene(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams, entropy: list[int]):
@@ -293,15 +314,19 @@ def render_scene(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.n
         raise PsdError(f"unknown render backend {p.backend!r}; available: {', '.join(BACKENDS)}")
     if len(pos_mm) != len(geometry):
         raise PsdError(f"poses hold {len(pos_mm)} particles but the spec has {len(geometry)}; rerun simulate")
+    n = len(geometry)
+    if n > MAX_PARTICLES_16BIT:
+        raise PsdError(f"{n} particles do not fit a 16-bit mask (max {MAX_PARTICLES_16BIT})")
     rng = rng_for(entropy, "render")
     px_mm = mm_per_px(float(spec["table_size"]), p.resolution)
-    rgb, ids, height, look = BACKENDS[p.backend](spec, geometry, pos_mm, quats, p, rng)
-    image, mask = finish_image(rgb, ids, height, look, p, px_mm, rng)
+    look = draw_look(rng, p, n)  # the same look (colours, light) for every backend
+    rgb, mask, extra = BACKENDS[p.backend](spec, geometry, pos_mm, quats, p, look, rng)
+    image = apply_sensor(rgb, look, p, rng)
     look_meta = {k: v for k, v in asdict(look).items() if k != "particle_rgb"}
     meta = {
         "backend": p.backend,
         "resolution": p.resolution,
-        "supersample": p.supersample,
+        **extra,
         "mm_per_px": px_mm,
         "table_size_mm": float(spec["table_size"]),
         "camera_height_mm": p.camera_height_mm,
