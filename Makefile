@@ -30,7 +30,7 @@ $(BLENDER_STAMP):
 
 blender: $(BLENDER_STAMP)  ## the Blender environment of the cycles render backend
 
-demo: $(STAMP)  ## build the default dataset with snakemake -j2
+demo: $(STAMP) $(BLENDER_STAMP)  ## the default config with snakemake -j2 (Blender for the report's backend comparison)
 	$(BIN)/snakemake -j$(JOBS) --configfile $(CONFIG)
 
 test: $(STAMP) $(BLENDER_STAMP)  ## the whole test suite, system-level and Cycles tests included

@@ -207,5 +207,12 @@ def scene_targets():
     return targets
 
 
+def compare_targets():
+    """The report's side-by-side renders of both backends (show.compare_backends scenes)."""
+    if config["show"]["compare_backends"] == 0:
+        return []
+    return [f"{RESULTS}/report/backends/compare.png", f"{RESULTS}/report/backends/compare.json"]
+
+
 def all_targets():
     return scene_targets() + [f"{RESULTS}/report/report.html", f"{RESULTS}/report/report.md"]

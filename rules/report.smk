@@ -6,6 +6,7 @@ rule report:
         histories=expand(f"{RESULTS}/models/{{arch}}/history.csv", arch=ARCHS),
         sheets=expand(f"{RESULTS}/{{dataset}}/contact_sheet.png", dataset=DATASETS),
         manifests=[f for ds in DATASETS for f in shard_files(ds, "scenes")],
+        backends=compare_targets(),
     output:
         html=report(
             f"{RESULTS}/report/report.html",
@@ -23,3 +24,29 @@ rule report:
     shell:
         "psdfactory report --params {params.config:q} --results {params.results:q}"
         " --html {output.html:q} --md {output.md:q} > {log:q} 2>&1"
+
+
+rule compare_backends:
+    """A few scenes rendered by both backends from the same poses, for the report."""
+    input:
+        lambda wildcards: shard_files(config["train"]["dataset"], "scenes"),
+    output:
+        figure=report(
+            f"{RESULTS}/report/backends/compare.png",
+            caption="../workflow/report/compare_backends.rst",
+            category="Datasets",
+        ),
+        summary=f"{RESULTS}/report/backends/compare.json",
+    params:
+        stage=lambda wildcards: as_json(psd_config.compare_params(config)),
+        dataset=config["train"]["dataset"],
+        n=config["show"]["compare_backends"],
+        results=lambda wildcards, output: results_root(output.figure, 3),
+        out_dir=lambda wildcards, output: os.path.dirname(output.figure),
+    log:
+        f"{RESULTS}/report/backends/compare.log",
+    conda:
+        "../envs/scene.yaml"
+    shell:
+        "psdfactory compare-backends --params {params.stage:q} --results {params.results:q}"
+        " --dataset {params.dataset} -n {params.n} --out-dir {params.out_dir:q} > {log:q} 2>&1"

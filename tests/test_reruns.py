@@ -91,3 +91,89 @@ def test_deleted_image_regenerates_that_scene_only(built):
     assert planned_wildcards(r, "render") == ["dataset=a, scene=a-000001"]
     assert planned_wildcards(r, "label") == ["dataset=a, scene=a-000001"]
     assert planned_wildcards(r, "manifest_shard") == ["dataset=a, shard=00000"]
+
+
+# ---- scenes_per_job > 1: batch jobs that skip up-to-date scenes ----------------------------
+
+BATCH_RULES = ("sample_batch", "simulate_batch", "render_batch", "label_batch")
+
+
+def scene_mtimes(results, dataset):
+    return {p.relative_to(results).as_posix(): p.stat().st_mtime_ns
+            for p in (results / dataset / "scenes").rglob("*") if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def built_batched(tmp_path_factory):
+    work = tmp_path_factory.mktemp("batched")
+    cfg = copy.deepcopy(BASE)
+    cfg["results"] = str(work / "results")
+    cfg["scenes_per_job"] = 2  # a: batches {0,1}, {2}; b: {0,1}
+    r = snakemake("-j2", "scenes", "--configfile", str(write_config(work / "c.yaml", cfg)), workdir=work)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return work, cfg
+
+
+def test_batched_scenes_equal_one_job_per_scene(built, built_batched):
+    """The grouping of scenes into jobs does not change a single output byte."""
+    per_scene, batched = built[0] / "results", built_batched[0] / "results"
+    for ds, n in (("a", 3), ("b", 2)):
+        for i in range(n):
+            for f in ("image.png", "mask.png", "labels.json", "poses.parquet"):
+                rel = f"{ds}/scenes/{ds}-{i:06d}/{f}"
+                if (per_scene / rel).exists():  # (a test above deletes one image)
+                    assert (per_scene / rel).read_bytes() == (batched / rel).read_bytes(), rel
+    assert not any(planned_jobs(dry(*built_batched)[1]).values())
+
+
+def test_batched_render_setting_reruns_render_and_label_batches_only(built_batched):
+    work, cfg = built_batched
+    cfg = copy.deepcopy(cfg)
+    cfg["render"]["light_elevation_deg"] = [40, 60]
+    jobs, _ = dry(work, cfg)
+    assert jobs["sample_batch"] == 0 and jobs["simulate_batch"] == 0
+    assert jobs["render_batch"] == 3 and jobs["label_batch"] == 3 and jobs["manifest_shard"] == 3
+
+
+def test_batched_training_setting_touches_no_scene_job(built_batched):
+    work, cfg = built_batched
+    cfg = copy.deepcopy(cfg)
+    cfg["train"]["epochs"] = 3
+    jobs, _ = dry(work, cfg, target="all")
+    assert jobs["train"] == 3 and all(jobs[r] == 0 for r in BATCH_RULES + ("manifest_shard",))
+
+
+def test_batched_reruns_regenerate_only_the_scenes_that_changed(built_batched):
+    """Runs for real: a deleted image, then more scenes — and checks which files were rewritten."""
+    work, cfg = built_batched
+    results = work / "results"
+    image = results / "a" / "scenes" / "a-000001" / "image.png"
+    before_bytes = image.read_bytes()
+    before = scene_mtimes(results, "a")
+    image.unlink()
+    jobs, r = dry(work, cfg)
+    assert "a-000001/image.png is missing" in r.stderr
+    assert planned_wildcards(r, "render_batch") == ["dataset=a, batch=00000"]
+    assert jobs["sample_batch"] == 0 and jobs["simulate_batch"] == 0
+    r = snakemake("-j2", "scenes", "--configfile", str(work / "edited.yaml"), workdir=work)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert image.read_bytes() == before_bytes  # regenerated, identical
+    after = scene_mtimes(results, "a")
+    changed = {k for k in after if after[k] != before.get(k)}
+    assert changed and all(k.startswith("a/scenes/a-000001/") for k in changed), changed
+    assert not any(k.startswith("a/scenes/a-000001/") and "sample" in k for k in changed)
+
+    # more scenes: 3 → 5; batch 1 ({2} → {2, 3}) reruns but skips scene 2; batch 2 is new
+    cfg = copy.deepcopy(cfg)
+    cfg["datasets"]["a"]["n_scenes"] = 5
+    jobs, r = dry(work, cfg)
+    for rule in BATCH_RULES:
+        assert sorted(planned_wildcards(r, rule)) == ["dataset=a, batch=00001", "dataset=a, batch=00002"]
+    before = scene_mtimes(results, "a")
+    r = snakemake("-j2", "scenes", "--configfile", str(work / "edited.yaml"), workdir=work)
+    assert r.returncode == 0, r.stderr[-3000:]
+    after = scene_mtimes(results, "a")
+    assert all(after[k] == v for k, v in before.items())  # no existing scene file rewritten
+    assert {k.split("/")[2] for k in set(after) - set(before)} == {"a-000003", "a-000004"}
+    assert "1 of 2 scenes to run, 1 up to date" in (results / "a" / "logs" / "sample" / "batch-00001.log").read_text()
+    assert not any(planned_jobs(dry(work, cfg)[1]).values())

@@ -1,11 +1,17 @@
 """One tiny end-to-end run of the Snakemake workflow (system-level)."""
 
 import json
+import os
 
 import pyarrow.parquet as pq
 import pytest
 
+from psdfactory.cycles_backend import DEFAULT_PYTHON
+
 from .workflow_helpers import snakemake, write_config
+
+# the report's side-by-side of both render backends needs Blender (`make test` installs it)
+COMPARE = 2 if DEFAULT_PYTHON.is_file() or os.environ.get("PSD_BLENDER_PYTHON") or os.environ.get("PSD_REQUIRE_BLENDER") else 0
 
 pytestmark = pytest.mark.workflow
 
@@ -28,6 +34,7 @@ TINY = {
         "input_size": {"resnet50": 32, "inception_v3": 75, "efficientnet_b0": 32},
     },
     "benchmark": {"batch_size": 2, "seconds": 0.05, "repeats": 1},
+    "show": {"compare_backends": COMPARE},
 }
 
 
@@ -54,6 +61,11 @@ def test_tiny_workflow_end_to_end(tmp_path):
         assert json.loads((res / "bench" / f"{arch}.json").read_text())["results"][0]["paths"]["fast"]
     html = (res / "report" / "report.html").read_text()
     assert "Inference speed" in html and "efficientnet_b0" in html
+    if COMPARE:
+        rows = json.loads((res / "report" / "backends" / "compare.json").read_text())["scenes"]
+        assert [r["scene_id"] for r in rows] == ["train-000000", "train-000001"]
+        assert all(r["mask_agreement_off_edges"] > 0.99 for r in rows)
+        assert "TinyRenderer and Blender Cycles" in html
     # a second run has nothing to do
     r = snakemake("-n", "--configfile", str(cfgfile), workdir=tmp_path)
     assert r.returncode == 0 and "Nothing to be done" in r.stdout + r.stderr

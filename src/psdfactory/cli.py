@@ -42,6 +42,15 @@ def cmd_show(a: argparse.Namespace) -> None:
     print(f"wrote {out}")
 
 
+def cmd_compare_backends(a: argparse.Namespace) -> None:
+    from .show import compare_backends
+
+    summary = compare_backends(Path(a.results), a.dataset, a.n, _params(a.params), Path(a.out_dir))
+    for r in summary["scenes"]:
+        print(f"{r['scene_id']}: tiny {r['seconds_tiny']:.1f} s, cycles {r['seconds_cycles']:.1f} s, masks agree on "
+              f"{100 * r['mask_agreement']:.1f} % of pixels ({100 * r['mask_agreement_off_edges']:.2f} % off edges)")
+
+
 def cmd_check_config(a: argparse.Namespace) -> None:
     from .config import load_config
 
@@ -198,6 +207,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", required=True)
     p.add_argument("--out-dir", required=True)
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("compare-backends", help="render a few scenes with both backends, side by side")
+    p.add_argument("--params", required=True, help="the render settings as JSON (cycles included)")
+    p.add_argument("--results", required=True)
+    p.add_argument("--dataset", required=True)
+    p.add_argument("-n", type=int, default=3, help="number of scenes")
+    p.add_argument("--out-dir", required=True, help="gets compare.png, compare.json and the renders")
+    p.set_defaults(func=cmd_compare_backends)
 
     p = sub.add_parser("check-config", help="validate a config file against the schema")
     p.add_argument("configfile")

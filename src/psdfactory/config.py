@@ -161,6 +161,11 @@ def label_params(config: dict) -> dict:
     return copy.deepcopy(config["labels"])
 
 
+def compare_params(config: dict) -> dict:
+    """The render settings, Cycles' included, for rendering scenes with both backends."""
+    return copy.deepcopy(config["render"])
+
+
 def manifest_params(config: dict, dataset: str) -> dict:
     return {"split": dict(config["datasets"][dataset]["split"])}
 

@@ -112,6 +112,17 @@ def build_report(results_root: Path, config: dict, models_dir: Path, eval_dir: P
             dst = fig_dir / f"contact_sheet_{ds}.png"
             shutil.copyfile(sheet, dst)
             figures.append((dst, f"Contact sheet: {ds}"))
+    compare_head, compare_rows = [], []
+    compare = results_root / "report" / "backends" / "compare.json"
+    if compare.is_file():
+        summary = json.loads(compare.read_text())
+        dst = fig_dir / "compare_backends.png"
+        shutil.copyfile(compare.with_suffix(".png"), dst)
+        figures.append((dst, "The same scenes rendered by TinyRenderer and Blender Cycles"))
+        compare_head = ["scene", "particles", "tiny (s)", "cycles (s)", "masks agree", "agree off edges"]
+        compare_rows = [[r["scene_id"], str(r["n_particles"]), f"{r['seconds_tiny']:.1f}", f"{r['seconds_cycles']:.1f}",
+                         f"{100 * r['mask_agreement']:.1f} %", f"{100 * r['mask_agreement_off_edges']:.2f} %"]
+                        for r in summary["scenes"]]
     from .evaluate import plot_history
 
     plot_figs = []
@@ -144,6 +155,10 @@ def build_report(results_root: Path, config: dict, models_dir: Path, eval_dir: P
     if warning:
         md += [f"> **Warning:** {warning}", ""]
     md += ["## Datasets", "", _md_table(count_head, count_rows), ""]
+    if compare_rows:
+        md += ["Render backends compared on the same settled poses "
+               f"({summary['resolution']} px, Cycles at {summary['cycles'].get('samples', '?')} samples):", "",
+               _md_table(compare_head, compare_rows), ""]
     md += [f"![{c}](figures/{p.name})" for p, c in figures] + [""]
     md += ["## Accuracy", "", "Labels are the number-weighted d10/d50/d90 (the paper's). 'Overall' pools the "
            "three targets, as in the paper's table 2. Evaluated on each dataset's test split.", ""]
@@ -167,7 +182,11 @@ def build_report(results_root: Path, config: dict, models_dir: Path, eval_dir: P
          "</head><body>", "<h1>psdfactory report</h1>", f"<p>Generated {when} by psdfactory {__version__}.</p>"]
     if warning:
         h.append(f"<p class='warn'><b>Warning:</b> {html.escape(warning)}</p>")
-    h += ["<h2>Datasets</h2>", _html_table(count_head, count_rows)] + [_img_tag(p, c) for p, c in figures]
+    h += ["<h2>Datasets</h2>", _html_table(count_head, count_rows)]
+    if compare_rows:
+        h += [f"<p>Render backends compared on the same settled poses ({summary['resolution']} px, Cycles at "
+              f"{summary['cycles'].get('samples', '?')} samples):</p>", _html_table(compare_head, compare_rows)]
+    h += [_img_tag(p, c) for p, c in figures]
     h += ["<h2>Accuracy</h2>", "<p>Labels are the number-weighted d10/d50/d90 (the paper's). 'Overall' pools the "
           "three targets, as in the paper's table 2. Evaluated on each dataset's test split.</p>"]
     for ds in datasets:
