@@ -46,6 +46,12 @@ def all_cores(wildcards):
         return 8
 
 
+def render_gpus(wildcards):
+    """The Cycles backend renders on a GPU where there is one (SLURM: `gpu` → --gpus)."""
+    r = config["render"]
+    return int(r["backend"] == "cycles" and r["cycles"]["device"] != "cpu")
+
+
 def scene_path(name):
     """A file of a scene folder, as an output/input pattern."""
     return f"{RESULTS}/{{dataset}}/scenes/{{scene}}/{name}"

@@ -10,6 +10,8 @@ rule render:
     params:
         stage=render_params,
         scene_dir=lambda wildcards, input: os.path.dirname(input.spec),
+    resources:
+        gpu=render_gpus,
     log:
         log_path("render"),
     conda:
@@ -28,6 +30,8 @@ rule render_batch:
         stage=render_params,
         scene_dirs=batch_scene_dirs,
     threads: all_cores
+    resources:
+        gpu=render_gpus,
     log:
         batch_log("render"),
     conda:
