@@ -267,13 +267,16 @@ def run_scenes(stage: str, params: dict, scene_dirs: list[Path], skip_up_to_date
     failed: list[str] = []
     work = [(stage, params, str(d)) for d in todo]
     jobs = max(1, min(int(jobs), len(work)))
+    pool = None
     if jobs == 1:
         results = map(_run_one, work)
     else:
         import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        pool = mp.get_context("fork").Pool(jobs)
-        results = pool.imap_unordered(_run_one, work)
+        # fork: the stages import no threads-holding libraries (no torch), and start-up is free
+        pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork"))
+        results = (f.result() for f in as_completed([pool.submit(_run_one, w) for w in work]))
     try:
         for k, (d, _, err) in enumerate(results, 1):
             if err:
@@ -282,10 +285,16 @@ def run_scenes(stage: str, params: dict, scene_dirs: list[Path], skip_up_to_date
             if len(work) > 1:
                 el = time.perf_counter() - t0
                 log(f"{stage}: {k}/{len(work)} scenes, {k / el:.2f} scenes/s, ETA {(len(work) - k) * el / k:.0f} s")
+    except Exception as e:  # a worker killed (out of memory, a crash in a native library)
+        from concurrent.futures.process import BrokenProcessPool
+
+        if isinstance(e, BrokenProcessPool):
+            raise PsdError(f"{stage}: a worker process died (out of memory? a crash in pybullet or Blender?) "
+                           f"after {len(failed)} failures; finished scenes are kept and skipped on a rerun") from None
+        raise
     finally:
-        if jobs > 1:
-            pool.close()
-            pool.join()
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
     if failed:
         raise PsdError(f"{stage} failed for {len(failed)} of {len(work)} scenes (the others are kept and "
                        "will be skipped on a rerun):\n  " + "\n  ".join(failed))
