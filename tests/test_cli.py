@@ -34,7 +34,8 @@ def test_missing_input_gives_clear_error(tiny_results, tmp_path, capsys):
     (d / "poses.parquet").unlink()
     (d / "labels.json").unlink()
     assert main(_label_args(cfg, d)) == 2
-    assert "missing file" in capsys.readouterr().err and not (d / "labels.json").exists()
+    err = capsys.readouterr().err
+    assert "missing poses.parquet" in err and "scene" in err and not (d / "labels.json").exists()
 
 
 def test_bad_params_json(tmp_path, capsys):

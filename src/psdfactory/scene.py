@@ -295,6 +295,8 @@ def run_scenes(stage: str, params: dict, scene_dirs: list[Path], skip_up_to_date
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
+    if failed and len(work) == 1:
+        raise PsdError(failed[0])
     if failed:
         raise PsdError(f"{stage} failed for {len(failed)} of {len(work)} scenes (the others are kept and "
                        "will be skipped on a rerun):\n  " + "\n  ".join(failed))
