@@ -47,19 +47,31 @@ def sacct_states(env, since: str) -> list[tuple[str, str]]:
     return [tuple(line.split("|")[:2]) for line in r.stdout.splitlines() if line.strip()]
 
 
-def test_scene_stages_run_through_slurm_and_match_a_local_run(cluster, tmp_path):
+BATCH_RULES = ("sample_batch", "simulate_batch", "render_batch", "label_batch")
+
+
+@pytest.mark.parametrize("per_job", [1, 2], ids=["one-job-per-scene", "batches-of-2"])
+def test_scene_stages_run_through_slurm_and_match_a_local_run(cluster, tmp_path, per_job):
     since = time.strftime("%Y-%m-%dT%H:%M:%S")
     slurm_work, local_work = tmp_path / "slurm", tmp_path / "local"
     for w in (slurm_work, local_work):
         w.mkdir()
-    cfg = write_config(slurm_work / "c.yaml", dict(copy.deepcopy(TINY), results=str(slurm_work / "results")))
+    tiny = dict(copy.deepcopy(TINY), scenes_per_job=per_job)
+    cfg = write_config(slurm_work / "c.yaml", dict(tiny, results=str(slurm_work / "results")))
+    # the profile's batch jobs ask for 4 CPUs; this test cluster's one node has 2
+    small_node = ["--set-resources", *(f"{r}:cpus_per_task=2" for r in BATCH_RULES),
+                  "--set-threads", *(f"{r}=2" for r in BATCH_RULES)] if per_job > 1 else []
     r = snakemake("scenes", "--profile", str(REPO / "slurm"), "--configfile", str(cfg),
-                  "--slurm-init-seconds-before-status-checks", "2", "--latency-wait", "10",
+                  "--slurm-init-seconds-before-status-checks", "2", "--latency-wait", "10", *small_node,
                   workdir=slurm_work, env=cluster)
     assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
     states = sacct_states(cluster, since)
     assert states, "sacct shows no jobs: nothing went through SLURM"
     assert all(s == "COMPLETED" for _, s in states), states
+    if per_job > 1:  # 2 batches per stage + manifests + contact sheet, each its own SLURM job
+        assert len(states) >= 4 * 2
+        log = (slurm_work / "results" / "train" / "logs" / "simulate" / "batch-00000.log").read_text()
+        assert "2 of 2 scenes to run" in log
 
     cfg = write_config(local_work / "c.yaml", dict(copy.deepcopy(TINY), results=str(local_work / "results")))
     r = snakemake("-j2", "scenes", "--configfile", str(cfg), workdir=local_work)
