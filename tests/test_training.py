@@ -145,6 +145,13 @@ def test_evaluate_benchmark_report(dataset, trained, tmp_path):
     assert r["paths"]["fp32"]["batch1"]["images_per_s"] > 0 and r["paths"]["fast"]["batched"]["batch"] == 2
     assert r["params_m"] == pytest.approx(11.18, abs=0.05) and r["gflops"] > 0
     assert abs(b["r2_change"]) < 0.05
+    from psdfactory.quantize import int8_available
+
+    if int8_available():  # this CPU has VNNI: the int8 ONNX Runtime path is measured too
+        int8 = r["paths"]["int8"]
+        assert int8["batched"]["images_per_s"] > 0 and int8["calibration_images"] > 0
+        assert abs(int8["accuracy"]["overall"]["r2"] - r["paths"]["fp32"]["accuracy"]["overall"]["r2"]) < 0.1
+    assert r["paths"]["fast"]["name"] == r["paths"][r["fast_key"]]["name"]
     write_json(root / "bench" / "resnet18.json", b)
 
     cfg = tiny_config()
@@ -224,3 +231,17 @@ def test_load_model_rejects_other_files(tmp_path):
         load_model(bad)
     with pytest.raises(PsdError, match="not found"):
         load_model(tmp_path / "none.pt")
+
+
+def test_fast_path_is_the_fastest_within_the_accuracy_budget():
+    from psdfactory.benchmark import choose_fast
+
+    def path(ips, dr2):
+        return {"batched": {"images_per_s": ips}, "r2_change": dr2}
+
+    paths = {"fp32": path(10, 0.0), "bf16": path(30, -0.001), "int8": path(80, -0.002)}
+    assert choose_fast(paths) == "int8"
+    paths["int8"]["r2_change"] = -0.02  # too inaccurate: the budget refuses it
+    assert choose_fast(paths) == "bf16"
+    paths["bf16"]["r2_change"] = -0.01  # nothing in budget: the first candidate, to show the change
+    assert choose_fast(paths) == "bf16"

@@ -91,15 +91,9 @@ def export(model_path: Path, out_dir: Path, log=print) -> dict:
     with torch.inference_mode():
         ref = main_output(model(x)).numpy()
 
-    class Wrapped(torch.nn.Module):  # plain tensor out, also for InceptionV3
-        def __init__(self, m):
-            super().__init__()
-            self.m = m
+    from .quantize import OutputOnly, export_onnx
 
-        def forward(self, images: torch.Tensor) -> torch.Tensor:
-            return main_output(self.m(images))
-
-    wrapped = Wrapped(model).eval()
+    wrapped = OutputOnly(model).eval()
     out_dir.mkdir(parents=True, exist_ok=True)
     report = {"arch": meta["arch"], "input_size": size, "input": "float32 Nx3xSxS, RGB/255 normalised with ImageNet mean/std",
               "output": "float32 Nx3: d10, d50, d90 in mm (number-weighted)", "mm_per_px": meta["mm_per_px"]}
@@ -115,9 +109,7 @@ def export(model_path: Path, out_dir: Path, log=print) -> dict:
     report["torchscript"] = {"path": str(ts_path), "max_abs_diff_mm": float(np.abs(ts_out - ref).max())}
 
     onnx_path = out_dir / "model.onnx"
-    with atomic_path(onnx_path) as tmp:
-        torch.onnx.export(wrapped, (x,), str(tmp), input_names=["images"], output_names=["d_mm"],
-                          dynamic_axes={"images": {0: "batch"}, "d_mm": {0: "batch"}}, dynamo=False)
+    export_onnx(model, size, onnx_path)
     import onnxruntime as ort
 
     sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
