@@ -243,5 +243,7 @@ def test_fast_path_is_the_fastest_within_the_accuracy_budget():
     assert choose_fast(paths) == "int8"
     paths["int8"]["r2_change"] = -0.02  # too inaccurate: the budget refuses it
     assert choose_fast(paths) == "bf16"
+    paths["int8"]["r2_change"] = +0.02  # "better" by this much is as different: refused too
+    assert choose_fast(paths) == "bf16"
     paths["bf16"]["r2_change"] = -0.01  # nothing in budget: the first candidate, to show the change
     assert choose_fast(paths) == "bf16"
