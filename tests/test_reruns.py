@@ -8,8 +8,6 @@ from .workflow_helpers import planned_jobs, planned_wildcards, snakemake, write_
 
 pytestmark = pytest.mark.workflow
 
-SCENE_RULES = ("sample", "simulate", "render", "label", "manifest_shard")
-
 BASE = {
     "seed": 11,
     "datasets": {
@@ -55,13 +53,22 @@ def test_more_scenes_only_new_scenes_and_affected_shards(built):
     assert sorted(planned_wildcards(r, "manifest_shard")) == ["dataset=a, shard=00001", "dataset=a, shard=00002"]
 
 
-def test_render_setting_reruns_render_and_downstream_only(built):
-    work, cfg = built
+BOTH_MODES = pytest.mark.parametrize("mode, stages", [
+    ("built", ("sample", "simulate", "render", "label")),  # one job per scene (5 scenes)
+    ("built_batched", ("sample_batch", "simulate_batch", "render_batch", "label_batch")),  # 3 batches of <= 2
+], ids=["one-job-per-scene", "batches"])
+
+
+@BOTH_MODES
+def test_render_setting_reruns_render_and_downstream_only(request, mode, stages):
+    work, cfg = request.getfixturevalue(mode)
     cfg = copy.deepcopy(cfg)
     cfg["render"]["light_elevation_deg"] = [40, 60]
     jobs, _ = dry(work, cfg)
-    assert jobs["sample"] == 0 and jobs["simulate"] == 0
-    assert jobs["render"] == 5 and jobs["label"] == 5 and jobs["manifest_shard"] == 3
+    sample, simulate, render, label = stages
+    n = 5 if mode == "built" else 3
+    assert jobs[sample] == 0 and jobs[simulate] == 0
+    assert jobs[render] == n and jobs[label] == n and jobs["manifest_shard"] == 3
 
 
 def test_one_datasets_size_distribution_only_touches_that_dataset(built):
@@ -74,13 +81,14 @@ def test_one_datasets_size_distribution_only_touches_that_dataset(built):
     assert planned_wildcards(r, "manifest_shard") == ["dataset=b, shard=00000"]
 
 
-def test_training_setting_touches_no_scene_job(built):
-    work, cfg = built
+@BOTH_MODES
+def test_training_setting_touches_no_scene_job(request, mode, stages):
+    work, cfg = request.getfixturevalue(mode)
     cfg = copy.deepcopy(cfg)
     cfg["train"]["epochs"] = 3
     jobs, _ = dry(work, cfg, target="all")
     assert jobs["train"] == 3  # the models are (re)made ...
-    assert all(jobs[r] == 0 for r in SCENE_RULES)  # ... from the scenes as they are
+    assert all(jobs[r] == 0 for r in stages + ("manifest_shard",))  # ... from the scenes as they are
 
 
 def test_deleted_image_regenerates_that_scene_only(built):
@@ -124,23 +132,6 @@ def test_batched_scenes_equal_one_job_per_scene(built, built_batched):
                 if (per_scene / rel).exists():  # (a test above deletes one image)
                     assert (per_scene / rel).read_bytes() == (batched / rel).read_bytes(), rel
     assert not any(planned_jobs(dry(*built_batched)[1]).values())
-
-
-def test_batched_render_setting_reruns_render_and_label_batches_only(built_batched):
-    work, cfg = built_batched
-    cfg = copy.deepcopy(cfg)
-    cfg["render"]["light_elevation_deg"] = [40, 60]
-    jobs, _ = dry(work, cfg)
-    assert jobs["sample_batch"] == 0 and jobs["simulate_batch"] == 0
-    assert jobs["render_batch"] == 3 and jobs["label_batch"] == 3 and jobs["manifest_shard"] == 3
-
-
-def test_batched_training_setting_touches_no_scene_job(built_batched):
-    work, cfg = built_batched
-    cfg = copy.deepcopy(cfg)
-    cfg["train"]["epochs"] = 3
-    jobs, _ = dry(work, cfg, target="all")
-    assert jobs["train"] == 3 and all(jobs[r] == 0 for r in BATCH_RULES + ("manifest_shard",))
 
 
 def test_batched_reruns_regenerate_only_the_scenes_that_changed(built_batched):
