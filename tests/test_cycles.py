@@ -118,3 +118,21 @@ def test_cycles_settings_do_not_rerun_the_fast_backend():
     assert psd_config.render_params(a) == psd_config.render_params(b)
     c = psd_config.validate({**copy.deepcopy(base), "render": {"backend": "cycles", "cycles": {"samples": 64}}})
     assert psd_config.render_params(c)["cycles"]["samples"] == 64
+
+
+@needs_blender
+def test_a_batch_of_cycles_renders_runs_one_scene_at_a_time(tiny_results, tmp_path, capsys):
+    from psdfactory.scene import run_scenes
+
+    cfg, root = tiny_results
+    dirs = []
+    for i in range(2):
+        d = tmp_path / f"tiny-{i:06d}"
+        shutil.copytree(root / "tiny" / "scenes" / f"tiny-{i:06d}", d)
+        dirs.append(d)
+    params = psd_config.render_params(cycles_config(cfg))
+    summary = run_scenes("render", params, dirs, skip_up_to_date=True, jobs=2)
+    assert sorted(summary["ran"]) == [d.name for d in dirs]
+    assert "run one at a time" in capsys.readouterr().out
+    assert all(read_json(d / "render.json")["backend"] == "cycles" for d in dirs)
+    assert run_scenes("render", params, dirs, skip_up_to_date=True)["ran"] == []  # now up to date

@@ -267,6 +267,9 @@ def run_scenes(stage: str, params: dict, scene_dirs: list[Path], skip_up_to_date
     failed: list[str] = []
     work = [(stage, params, str(d)) for d in todo]
     jobs = max(1, min(int(jobs), len(work)))
+    if stage == "render" and params.get("backend") == "cycles" and jobs > 1:
+        log(f"render: Cycles uses every core (or the GPU) itself, so the {len(work)} scenes run one at a time")
+        jobs = 1
     pool = None
     if jobs == 1:
         results = map(_run_one, work)
