@@ -1,8 +1,10 @@
 # psdfactory: synthetic particle-bed images with PSD labels.
 #   snakemake -j2                          # the default config (config/config.yaml)
 #   snakemake -j2 --configfile config/paper.yaml
-# Per scene: sample -> simulate -> render -> label, one job each; then sharded Parquet manifests,
-# one training job per architecture, evaluation, an inference benchmark and one final report.
+# Per scene: sample -> simulate -> render -> label, one job each (or, with scenes_per_job: N, one
+# job per batch of N scenes that skips the scenes already up to date); then sharded Parquet
+# manifests, one training job per architecture, evaluation, an inference benchmark and one final
+# report (with a few scenes rendered by both render backends).
 
 from snakemake.utils import min_version
 
