@@ -212,6 +212,27 @@ def test_export_matches_pytorch(trained, tmp_path):
     assert out.shape == (3, 3)
 
 
+def test_int8_export_is_checked_and_predicts_like_pytorch(dataset, trained, tmp_path):
+    from psdfactory.predict import export, predict_files
+
+    model = trained[0] / "model.pt"
+    # a budget no model can meet: refused, and nothing left under the final name
+    with pytest.raises(PsdError, match="int8 model refused"):
+        export(model, tmp_path / "strict", log=lambda m: None, int8_results=dataset, dataset="tiny", max_r2_change=-1)
+    assert not list((tmp_path / "strict").glob("*int8*"))
+    rep = export(model, tmp_path / "exp", log=lambda m: None, int8_results=dataset, dataset="tiny", max_r2_change=10)
+    assert rep["int8"]["calibration_images"] > 0 and (tmp_path / "exp" / "model.int8.onnx").is_file()
+    img = dataset / "tiny" / "scenes" / "tiny-000008" / "image.png"
+    ref = predict_files(model, [str(img)], log=lambda m: None)[0]
+    for name in ("model.onnx", "model.int8.onnx"):
+        got = predict_files(tmp_path / "exp" / name, [str(img)], log=lambda m: None)[0]
+        tol = 1e-3 if name == "model.onnx" else 0.1 * ref["d90_mm"]
+        assert all(abs(got[k] - ref[k]) <= tol for k in ("d10_mm", "d50_mm", "d90_mm")), (name, got, ref)
+    (tmp_path / "exp" / "meta.json").unlink()
+    with pytest.raises(PsdError, match="meta.json"):
+        predict_files(tmp_path / "exp" / "model.onnx", [str(img)], log=lambda m: None)
+
+
 def test_train_params_slice_ignores_scene_settings():
     a = tiny_config()
     b = tiny_config()

@@ -118,7 +118,8 @@ def cmd_predict(a: argparse.Namespace) -> int:
 def cmd_export(a: argparse.Namespace) -> None:
     from .predict import export
 
-    export(Path(a.model), Path(a.out_dir))
+    export(Path(a.model), Path(a.out_dir), int8_results=Path(a.int8) if a.int8 else None, dataset=a.dataset,
+           max_r2_change=a.int8_max_r2_change)
 
 
 def _threads(n: int) -> None:
@@ -196,16 +197,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("predict", help="d10/d50/d90 in mm for image files or folders")
-    p.add_argument("--model", required=True, help="a model.pt written by training")
+    p.add_argument("--model", required=True, help="a model.pt written by training, or an exported .onnx (fp32 or int8)")
     p.add_argument("--mm-per-px", type=float, help="scale of the images; they are rescaled to the model's scale")
     p.add_argument("--out", help="write the predictions to this .csv or .json file")
     p.add_argument("--device", default="cpu")
     p.add_argument("images", nargs="+", help="image files and/or folders of images")
     p.set_defaults(func=cmd_predict)
 
-    p = sub.add_parser("export", help="write the model as ONNX and TorchScript, checked against PyTorch")
+    p = sub.add_parser("export", help="write the model as ONNX and TorchScript (and int8 ONNX), checked against PyTorch")
     p.add_argument("--model", required=True)
     p.add_argument("--out-dir", required=True)
+    p.add_argument("--int8", metavar="RESULTS", help="also model.int8.onnx, calibrated on this results root's training images")
+    p.add_argument("--dataset", default="train", help="dataset to calibrate and check int8 on")
+    p.add_argument("--int8-max-r2-change", type=float, default=0.005,
+                   help="refuse the int8 model if its overall R² on the test split moves more than this")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("compare-backends", help="render a few scenes with both backends, side by side")

@@ -45,11 +45,38 @@ def prepare(image: np.ndarray, meta: dict, mm_per_px: float | None) -> torch.Ten
     return t.round().clamp(0, 255).to(torch.uint8)
 
 
-def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None, device: str = "cpu", log=print) -> list[dict]:
+def load_predictor(model_path: Path, device: str = "cpu"):
+    """→ (function: normalised float N×3×S×S tensor → N×3 mm array, meta). A `model.pt` runs in
+    PyTorch; an exported `.onnx` (fp32 or int8, with the export's meta.json beside it) runs in
+    ONNX Runtime on the CPU."""
+    model_path = Path(model_path)
+    if model_path.suffix == ".onnx":
+        import json
+
+        from .quantize import OrtModel
+
+        meta_path = model_path.with_name("meta.json")
+        if not model_path.is_file():
+            raise PsdError(f"model file not found: {model_path}")
+        if not meta_path.is_file():
+            raise PsdError(f"{meta_path} is missing: an ONNX model needs the meta.json that `psdfactory export` writes beside it")
+        meta = json.loads(meta_path.read_text())
+        ort = OrtModel(model_path, torch.get_num_threads())
+        return (lambda x: ort(x.numpy())), meta
     from .train import load_model, pick_device
 
     dev = pick_device(device)
     model, meta = load_model(model_path, dev)
+
+    def run(x: torch.Tensor) -> np.ndarray:
+        with torch.inference_mode():
+            return main_output(model(x.to(dev))).float().cpu().numpy()
+
+    return run, meta
+
+
+def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None, device: str = "cpu", log=print) -> list[dict]:
+    run, meta = load_predictor(model_path, device)
     log(f"model {meta['arch']} ({model_path}): expects images at {meta['mm_per_px']:.4f} mm/px "
         f"({meta['image_resolution']} px over {meta['mm_per_px'] * meta['image_resolution']:.0f} mm); "
         f"network input {meta['input_size']} px = {network_scale(meta):.4f} mm/px")
@@ -61,9 +88,7 @@ def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None =
     rows = []
     for f in files:
         try:
-            x = prepare(read_png(f), meta, mm_per_px)
-            with torch.inference_mode():
-                d = main_output(model(normalise(x.to(dev)))).float().cpu().numpy()[0]
+            d = run(normalise(prepare(read_png(f), meta, mm_per_px)))[0]
             rows.append({"image": str(f), "d10_mm": float(d[0]), "d50_mm": float(d[1]), "d90_mm": float(d[2]), "error": ""})
         except PsdError as e:
             rows.append({"image": str(f), "d10_mm": None, "d50_mm": None, "d90_mm": None, "error": str(e)})
@@ -80,8 +105,12 @@ def write_predictions(rows: list[dict], out: Path) -> None:
         w.writerows(rows)
 
 
-def export(model_path: Path, out_dir: Path, log=print) -> dict:
-    """ONNX and TorchScript copies of a model, each checked against the PyTorch output."""
+def export(model_path: Path, out_dir: Path, log=print, int8_results: Path | None = None, dataset: str = "train",
+           max_r2_change: float = 0.005) -> dict:
+    """ONNX and TorchScript copies of a model, each checked against the PyTorch output; with
+    `int8_results` (a results root) also ``model.int8.onnx``, calibrated on the dataset's
+    training images and refused if its overall R² on the test split moves more than
+    `max_r2_change` from the fp32 model's."""
     from .train import load_model
 
     model, meta = load_model(model_path, "cpu")
@@ -120,6 +149,43 @@ def export(model_path: Path, out_dir: Path, log=print) -> dict:
         if not diff < 1e-3:
             raise PsdError(f"{k} export differs from PyTorch by {diff:.2e} mm (tolerance 1e-3 mm)")
         log(f"{k}: {report[k]['path']} (max |difference| vs PyTorch {diff:.1e} mm)")
+    if int8_results is not None:
+        report["int8"] = export_int8(model, meta, onnx_path, out_dir / "model.int8.onnx", Path(int8_results), dataset,
+                                     max_r2_change, log)
     write_json(out_dir / "export.json", report)
     write_json(out_dir / "meta.json", meta)
     return report
+
+
+def export_int8(model, meta: dict, fp32_onnx: Path, out: Path, results_root: Path, dataset: str,
+                max_r2_change: float, log=print) -> dict:
+    from .benchmark import _images
+    from .data import manifest_rows
+    from .evaluate import eval_rows
+    from .metrics import regression_metrics
+    from .quantize import OrtModel, int8_available, quantize_int8
+
+    if not int8_available():
+        log("note: this CPU has no VNNI/AMX-INT8; the int8 model will be correct but not faster here")
+    size = meta["input_size"]
+    calib_rows = manifest_rows(results_root, dataset, ("train",))[:64]
+    if not calib_rows:
+        raise PsdError(f"dataset {dataset!r} under {results_root} has no training scenes to calibrate int8 on")
+    calib = _images(results_root, calib_rows, size)[0].numpy()
+    tmp_out = out.with_name(".candidate." + out.name)
+    quantize_int8(fp32_onnx, tmp_out, calib)
+    x, y = _images(results_root, eval_rows(results_root, dataset), size)
+    ort = OrtModel(tmp_out, torch.get_num_threads())
+    with torch.inference_mode():
+        p32 = main_output(model(x)).numpy()
+    p8 = np.concatenate([ort(x[i : i + 32].numpy()) for i in range(0, len(x), 32)])
+    r2_32, r2_8 = regression_metrics(y, p32)["overall"]["r2"], regression_metrics(y, p8)["overall"]["r2"]
+    info = {"path": str(out), "calibration_images": len(calib_rows), "test_scenes": len(y), "r2_fp32": r2_32,
+            "r2_int8": r2_8, "r2_change": r2_8 - r2_32, "max_abs_diff_mm": float(np.abs(p8 - p32).max())}
+    if abs(r2_8 - r2_32) > max_r2_change:
+        tmp_out.unlink()
+        raise PsdError(f"int8 model refused: overall R² {r2_8:.4f} vs fp32 {r2_32:.4f} on {len(y)} test scenes "
+                       f"(change {r2_8 - r2_32:+.4f}, allowed ±{max_r2_change}); use the fp32 model.onnx")
+    tmp_out.replace(out)
+    log(f"int8: {out} (R² {r2_32:.4f} → {r2_8:.4f} on {len(y)} test scenes; calibrated on {len(calib_rows)} images)")
+    return info
