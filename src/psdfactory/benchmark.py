@@ -80,14 +80,6 @@ def choose_fast(paths: dict[str, dict], max_r2_drop: float = MAX_R2_DROP) -> str
     return max(pool, key=lambda k: paths[k]["batched"]["images_per_s"])
 
 
-def _images(results_root: Path, rows: list[dict], size: int) -> tuple[torch.Tensor, np.ndarray]:
-    from .data import SceneImages, normalise
-
-    ds = SceneImages(results_root, rows, size, cache=False)
-    xs, ys = zip(*(ds[i] for i in range(len(ds))))
-    return normalise(torch.stack(xs)), torch.stack(ys).numpy()
-
-
 def benchmark_model(model: nn.Module, meta: dict, device: torch.device, results_root: Path | None = None,
                     dataset: str | None = None, batch: int = 16, seconds: float = 2.0, repeats: int = 5,
                     log=print) -> dict:
@@ -143,14 +135,14 @@ def int8_path(model: nn.Module, meta: dict, results_root: Path | None, dataset: 
     when there is no dataset: then only its speed means anything)."""
     import tempfile
 
-    from .data import manifest_rows
+    from .data import manifest_rows, normalised_images
     from .metrics import regression_metrics
     from .quantize import OrtModel, export_onnx, quantize_int8
 
     size = meta["input_size"]
     if rows:
         train = manifest_rows(results_root, dataset, ("train",))[:n_calibration] or rows
-        calib = _images(results_root, train, size)[0].numpy()
+        calib = normalised_images(results_root, train, size)[0].numpy()
     else:
         calib = np.random.default_rng(0).standard_normal((8, 3, size, size)).astype(np.float32)
     with tempfile.TemporaryDirectory() as tmp:
@@ -164,7 +156,7 @@ def int8_path(model: nn.Module, meta: dict, results_root: Path | None, dataset: 
         res["batch1" if b == 1 else "batched"] = r
         log(f"  {label:<32} batch {b:>3}: {r['images_per_s']:7.1f} images/s, {r['ms_per_image']:7.2f} ms/image")
     if rows:
-        x, y = _images(results_root, rows, size)
+        x, y = normalised_images(results_root, rows, size)
         p = np.concatenate([ort(x[i : i + 32].numpy()) for i in range(0, len(x), 32)])
         res["accuracy"] = regression_metrics(y, p)
     return res

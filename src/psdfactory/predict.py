@@ -159,8 +159,7 @@ def export(model_path: Path, out_dir: Path, log=print, int8_results: Path | None
 
 def export_int8(model, meta: dict, fp32_onnx: Path, out: Path, results_root: Path, dataset: str,
                 max_r2_change: float, log=print) -> dict:
-    from .benchmark import _images
-    from .data import manifest_rows
+    from .data import manifest_rows, normalised_images
     from .evaluate import eval_rows
     from .metrics import regression_metrics
     from .quantize import OrtModel, int8_available, quantize_int8
@@ -171,10 +170,10 @@ def export_int8(model, meta: dict, fp32_onnx: Path, out: Path, results_root: Pat
     calib_rows = manifest_rows(results_root, dataset, ("train",))[:64]
     if not calib_rows:
         raise PsdError(f"dataset {dataset!r} under {results_root} has no training scenes to calibrate int8 on")
-    calib = _images(results_root, calib_rows, size)[0].numpy()
+    calib = normalised_images(results_root, calib_rows, size)[0].numpy()
     tmp_out = out.with_name(".candidate." + out.name)
     quantize_int8(fp32_onnx, tmp_out, calib)
-    x, y = _images(results_root, eval_rows(results_root, dataset), size)
+    x, y = normalised_images(results_root, eval_rows(results_root, dataset), size)
     ort = OrtModel(tmp_out, torch.get_num_threads())
     with torch.inference_mode():
         p32 = main_output(model(x)).numpy()
