@@ -35,8 +35,8 @@ def main() -> None:
 
     from psdfactory import config as psd_config
     from psdfactory.io import read_json, read_png
-    from psdfactory.scene import run_render, run_sample, run_simulate
-    from psdfactory.show import mask_agreement
+    from psdfactory.scene.stages import run_render, run_sample, run_simulate
+    from psdfactory.scene.show import mask_agreement
 
     cfg = psd_config.load_config(REPO / "config" / "paper.yaml")
     cfg["render"]["resolution"] = a.resolution

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import torch
 
-from psdfactory.benchmark import benchmark, benchmark_model
-from psdfactory.models import TargetStats, build_model
+from psdfactory.deploy.benchmark import benchmark, benchmark_model
+from psdfactory.learn.models import TargetStats, build_model
 
 PAPER_CPU_FPS = {"resnet50": 14.66, "inception_v3": 12.00, "efficientnet_b0": 21.51}  # Ryzen 7 5800H, 8 cores
 SIZES = {"resnet50": 224, "inception_v3": 299, "efficientnet_b0": 224}

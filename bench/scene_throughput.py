@@ -32,7 +32,7 @@ def one_scene(args: tuple) -> dict:
 
     from psdfactory import config as psd_config
     from psdfactory.config import load_config
-    from psdfactory.scene import run_label, run_render, run_sample, run_simulate
+    from psdfactory.scene.stages import run_label, run_render, run_sample, run_simulate
 
     config_path, resolution, index, root = args
     cfg = load_config(config_path)
@@ -70,7 +70,7 @@ def startup_cost(repeats: int = 5) -> float:
 
 
 def import_cost(repeats: int = 5) -> float:
-    code = "import psdfactory.scene, psdfactory.physics, psdfactory.render, pybullet, scipy.ndimage, pyarrow.parquet"
+    code = "import psdfactory.scene.stages, psdfactory.scene.physics, psdfactory.scene.render.tiny, pybullet, scipy.ndimage, pyarrow.parquet"
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()

@@ -11,7 +11,7 @@ from snakemake.exceptions import WorkflowError
 
 from psdfactory import PsdError
 from psdfactory import config as psd_config
-from psdfactory.scene import SCENE_FILES, STAGES
+from psdfactory.scene.stages import SCENE_FILES, STAGES
 from psdfactory.seeding import scene_id, scene_index
 
 try:

@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from psdfactory import config as psd_config
-from psdfactory.scene import run_label, run_render, run_sample, run_simulate
+from psdfactory.scene.stages import run_label, run_render, run_sample, run_simulate
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -46,7 +46,7 @@ def test_bad_params_json(tmp_path, capsys):
 def test_cli_entry_point_runs_without_torch():
     exe = Path(sys.executable).with_name("psdfactory")
     r = subprocess.run(
-        [sys.executable, "-X", "importtime", "-c", "import psdfactory.cli, psdfactory.scene"],
+        [sys.executable, "-X", "importtime", "-c", "import psdfactory.cli, psdfactory.scene.stages"],
         capture_output=True, text=True,
     )
     assert "torch" not in r.stderr
@@ -56,7 +56,7 @@ def test_cli_entry_point_runs_without_torch():
 
 def test_show_contact_sheet(tiny_results, tmp_path):
     from psdfactory.manifest import write_shard
-    from psdfactory.show import contact_sheet
+    from psdfactory.scene.show import contact_sheet
 
     _, root = tiny_results
     res = tmp_path / "res"

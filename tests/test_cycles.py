@@ -13,9 +13,9 @@ from scipy import ndimage
 
 from psdfactory import PsdError
 from psdfactory import config as psd_config
-from psdfactory.cycles_backend import DEFAULT_PYTHON, blender_python
+from psdfactory.scene.render.cycles import DEFAULT_PYTHON, blender_python
 from psdfactory.io import read_json, read_png
-from psdfactory.scene import run_render
+from psdfactory.scene.stages import run_render
 
 pytestmark = pytest.mark.slow
 
@@ -122,7 +122,7 @@ def test_cycles_settings_do_not_rerun_the_fast_backend():
 
 @needs_blender
 def test_a_batch_of_cycles_renders_runs_one_scene_at_a_time(tiny_results, tmp_path, capsys):
-    from psdfactory.scene import run_scenes
+    from psdfactory.scene.stages import run_scenes
 
     cfg, root = tiny_results
     dirs = []

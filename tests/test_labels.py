@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from psdfactory import PsdError
-from psdfactory.labels import LabelParams, cumulative_curve, scene_labels, visible_pixels, weighted_percentiles
+from psdfactory.scene.labels import LabelParams, cumulative_curve, scene_labels, visible_pixels, weighted_percentiles
 
 
 def test_number_percentiles_hand_computed():

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from psdfactory.metrics import r2, regression_metrics
+from psdfactory.learn.metrics import r2, regression_metrics
 
 
 def test_r2_hand_computed():

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from psdfactory import PsdError
-from psdfactory.models import OrderedHead, TargetStats, build_model, inception_aux_fits, input_size, main_output
+from psdfactory.learn.models import OrderedHead, TargetStats, build_model, inception_aux_fits, input_size, main_output
 
 STATS = TargetStats.from_targets(torch.tensor([[2.0, 8.0, 15.0], [3.0, 10.0, 16.0], [1.0, 7.0, 14.0]]))
 

@@ -3,7 +3,7 @@ import pytest
 
 from psdfactory import PsdError
 from psdfactory import config as psd_config
-from psdfactory.physics import (
+from psdfactory.scene.physics import (
     PhysicsParams,
     QualityBounds,
     quality_figures,
@@ -13,8 +13,8 @@ from psdfactory.physics import (
     simulate,
     spawn_heights,
 )
-from psdfactory.sampling import SampleParams, sample_scene
-from psdfactory.geometry import Geometry
+from psdfactory.scene.sampling import SampleParams, sample_scene
+from psdfactory.scene.geometry import Geometry
 
 from .conftest import tiny_config
 
@@ -90,7 +90,7 @@ def test_scene_failing_quality_is_retried_then_fails_loudly():
 
 
 def test_mass_ratio_is_capped():
-    from psdfactory.physics import particle_masses
+    from psdfactory.scene.physics import particle_masses
 
     m = particle_masses(np.array([1.0, 1000.0, 8000.0]), 2.0, max_ratio=100.0)
     np.testing.assert_allclose(m, [0.16, 2.0, 16.0])  # 8000 mm³ × 2 g/cm³ = 16 g; floor 0.16 g

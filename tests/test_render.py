@@ -3,8 +3,8 @@ import pytest
 
 from psdfactory import PsdError
 from psdfactory.io import read_json, read_png
-from psdfactory.render import RenderParams, downsample, shade_from_height
-from psdfactory.scene import load_poses
+from psdfactory.scene.render.tiny import RenderParams, downsample, shade_from_height
+from psdfactory.scene.stages import load_poses
 
 pytestmark = pytest.mark.slow
 
@@ -49,7 +49,7 @@ def test_render_is_deterministic(tiny_results, tmp_path):
     import shutil
 
     from psdfactory import config as psd_config
-    from psdfactory.scene import run_render
+    from psdfactory.scene.stages import run_render
 
     cfg, root = tiny_results
     src = root / "tiny" / "scenes" / "tiny-000002"

@@ -4,7 +4,7 @@ from scipy import stats
 
 from psdfactory import PsdError
 from psdfactory import config as psd_config
-from psdfactory.sampling import SampleParams, drop_positions, sample_scene, truncnormal_sizes
+from psdfactory.scene.sampling import SampleParams, drop_positions, sample_scene, truncnormal_sizes
 
 from .conftest import tiny_config
 

@@ -10,7 +10,7 @@ import pytest
 from psdfactory import PsdError
 from psdfactory import config as psd_config
 from psdfactory.io import read_json
-from psdfactory.scene import record_path, run_scenes, up_to_date
+from psdfactory.scene.stages import record_path, run_scenes, up_to_date
 
 from .conftest import tiny_config
 

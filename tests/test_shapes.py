@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from psdfactory import PsdError
-from psdfactory.geometry import Geometry
-from psdfactory.shapes import (
+from psdfactory.scene.geometry import Geometry
+from psdfactory.scene.shapes import (
     ShapeParams,
     convex_mesh,
     make_particles,

@@ -37,7 +37,7 @@ def dataset(tmp_path_factory):
 
 
 def params(**over):
-    from psdfactory.train import TrainParams
+    from psdfactory.learn.train import TrainParams
 
     p = dict(arch="resnet18", dataset="tiny", pretrained="none", epochs=6, batch_size=3, lr=3e-3, input_size=32,
              precision="fp32", seed=1, early_stopping_patience=50)
@@ -47,7 +47,7 @@ def params(**over):
 
 @pytest.fixture(scope="module")
 def trained(dataset, tmp_path_factory):
-    from psdfactory.train import train
+    from psdfactory.learn.train import train
 
     out = tmp_path_factory.mktemp("model")
     summary = train(params(), dataset, out, log=lambda m: None)
@@ -71,7 +71,7 @@ def test_training_lowers_loss_and_writes_outputs(trained):
 def test_resume_after_interruption_matches_uninterrupted(dataset, trained, tmp_path, monkeypatch):
     import csv
 
-    from psdfactory import train as train_mod
+    from psdfactory.learn import train as train_mod
 
     out = tmp_path / "m"
     real = train_mod.run_epoch
@@ -97,7 +97,7 @@ def test_resume_after_interruption_matches_uninterrupted(dataset, trained, tmp_p
 
 
 def test_other_settings_do_not_resume(dataset, trained, tmp_path):
-    from psdfactory.train import train
+    from psdfactory.learn.train import train
 
     out = tmp_path / "m"
     shutil.copytree(trained[0], out)
@@ -107,7 +107,7 @@ def test_other_settings_do_not_resume(dataset, trained, tmp_path):
 
 
 def test_needs_train_and_val(dataset, tmp_path):
-    from psdfactory.train import train
+    from psdfactory.learn.train import train
 
     with pytest.raises(PsdError, match="0 val scenes"):
         import pyarrow.parquet as pq2
@@ -122,8 +122,8 @@ def test_needs_train_and_val(dataset, tmp_path):
 
 
 def test_evaluate_benchmark_report(dataset, trained, tmp_path):
-    from psdfactory.benchmark import benchmark
-    from psdfactory.evaluate import evaluate, plot_history
+    from psdfactory.deploy.benchmark import benchmark
+    from psdfactory.learn.evaluate import evaluate, plot_history
     from psdfactory.io import write_json
     from psdfactory.report import build_report
 
@@ -145,7 +145,7 @@ def test_evaluate_benchmark_report(dataset, trained, tmp_path):
     assert r["paths"]["fp32"]["batch1"]["images_per_s"] > 0 and r["paths"]["fast"]["batched"]["batch"] == 2
     assert r["params_m"] == pytest.approx(11.18, abs=0.05) and r["gflops"] > 0
     assert abs(b["r2_change"]) < 0.05
-    from psdfactory.quantize import int8_available
+    from psdfactory.deploy.quantize import int8_available
 
     if int8_available():  # this CPU has VNNI: the int8 ONNX Runtime path is measured too
         int8 = r["paths"]["int8"]
@@ -192,7 +192,7 @@ def test_predict_good_and_bad_files(dataset, trained, tmp_path, capsys):
 
 
 def test_prepare_rescales_to_the_model_scale():
-    from psdfactory.predict import network_scale, prepare
+    from psdfactory.deploy.predict import network_scale, prepare
 
     meta = {"mm_per_px": 0.5, "image_resolution": 256, "input_size": 128}
     assert network_scale(meta) == 1.0
@@ -202,7 +202,7 @@ def test_prepare_rescales_to_the_model_scale():
 
 
 def test_export_matches_pytorch(trained, tmp_path):
-    from psdfactory.predict import export
+    from psdfactory.deploy.predict import export
 
     rep = export(trained[0] / "model.pt", tmp_path / "exp", log=lambda m: None)
     assert (tmp_path / "exp" / "model.onnx").is_file() and (tmp_path / "exp" / "model.torchscript.pt").is_file()
@@ -213,7 +213,7 @@ def test_export_matches_pytorch(trained, tmp_path):
 
 
 def test_int8_export_is_checked_and_predicts_like_pytorch(dataset, trained, tmp_path):
-    from psdfactory.predict import export, predict_files
+    from psdfactory.deploy.predict import export, predict_files
 
     model = trained[0] / "model.pt"
     # a budget no model can meet: refused, and nothing left under the final name
@@ -244,7 +244,7 @@ def test_train_params_slice_ignores_scene_settings():
 
 
 def test_load_model_rejects_other_files(tmp_path):
-    from psdfactory.train import load_model
+    from psdfactory.learn.train import load_model
 
     bad = tmp_path / "x.pt"
     torch.save({"hello": 1}, bad)
@@ -255,7 +255,7 @@ def test_load_model_rejects_other_files(tmp_path):
 
 
 def test_fast_path_is_the_fastest_within_the_accuracy_budget():
-    from psdfactory.benchmark import choose_fast
+    from psdfactory.deploy.benchmark import choose_fast
 
     def path(ips, dr2):
         return {"batched": {"images_per_s": ips}, "r2_change": dr2}

@@ -6,7 +6,7 @@ import os
 import pyarrow.parquet as pq
 import pytest
 
-from psdfactory.cycles_backend import DEFAULT_PYTHON
+from psdfactory.scene.render.cycles import DEFAULT_PYTHON
 
 from .workflow_helpers import snakemake, write_config
 

@@ -21,7 +21,7 @@ def _params(text: str) -> dict:
 
 
 def cmd_stage(a: argparse.Namespace) -> None:
-    from .scene import run_scenes
+    from .scene.stages import run_scenes
 
     run_scenes(a.command, _params(a.params), [Path(d) for d in a.scene_dirs], skip_up_to_date=a.skip_up_to_date,
                jobs=a.jobs, stamp=Path(a.stamp) if a.stamp else None)
@@ -36,14 +36,14 @@ def cmd_manifest(a: argparse.Namespace) -> None:
 
 
 def cmd_show(a: argparse.Namespace) -> None:
-    from .show import contact_sheet
+    from .scene.show import contact_sheet
 
     out = contact_sheet(Path(a.results), a.dataset, Path(a.out), a.n)
     print(f"wrote {out}")
 
 
 def cmd_compare_backends(a: argparse.Namespace) -> None:
-    from .show import compare_backends
+    from .scene.show import compare_backends
 
     summary = compare_backends(Path(a.results), a.dataset, a.n, _params(a.params), Path(a.out_dir))
     for r in summary["scenes"]:
@@ -60,14 +60,14 @@ def cmd_check_config(a: argparse.Namespace) -> None:
 
 
 def cmd_train(a: argparse.Namespace) -> None:
-    from .train import TrainParams, train
+    from .learn.train import TrainParams, train
 
     _threads(a.threads)
     train(TrainParams.from_dict(_params(a.params)), Path(a.results), Path(a.out_dir))
 
 
 def cmd_evaluate(a: argparse.Namespace) -> None:
-    from .evaluate import evaluate, plot_history
+    from .learn.evaluate import evaluate, plot_history
 
     p = _params(a.params)
     _threads(a.threads)
@@ -78,7 +78,7 @@ def cmd_evaluate(a: argparse.Namespace) -> None:
 
 
 def cmd_benchmark(a: argparse.Namespace) -> None:
-    from .benchmark import benchmark
+    from .deploy.benchmark import benchmark
     from .io import write_json
 
     p = _params(a.params)
@@ -97,7 +97,7 @@ def cmd_report(a: argparse.Namespace) -> None:
 
 
 def cmd_predict(a: argparse.Namespace) -> int:
-    from .predict import predict_files, write_predictions
+    from .deploy.predict import predict_files, write_predictions
 
     rows = predict_files(Path(a.model), a.images, a.mm_per_px, device=a.device, log=lambda m: print(m, file=sys.stderr))
     print(f"{'image':<50} {'d10_mm':>8} {'d50_mm':>8} {'d90_mm':>8}")
@@ -116,7 +116,7 @@ def cmd_predict(a: argparse.Namespace) -> int:
 
 
 def cmd_export(a: argparse.Namespace) -> None:
-    from .predict import export
+    from .deploy.predict import export
 
     export(Path(a.model), Path(a.out_dir), int8_results=Path(a.int8) if a.int8 else None, dataset=a.dataset,
            max_r2_change=a.int8_max_r2_change)
@@ -165,7 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_show)
 
     p = sub.add_parser("train", help="train one architecture → model.pt, history.csv, TensorBoard logs")
-    p.add_argument("--params", required=True, help="training settings as JSON (see train.TrainParams)")
+    p.add_argument("--params", required=True, help="training settings as JSON (see learn.train.TrainParams)")
     p.add_argument("--results", required=True)
     p.add_argument("--out-dir", required=True)
     p.add_argument("--threads", type=int, default=0)

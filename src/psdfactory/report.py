@@ -14,7 +14,7 @@ import numpy as np
 from . import __version__
 from .io import atomic_path, pyplot, save_figure
 from .manifest import read_scenes
-from .metrics import NAMES
+from .learn.metrics import NAMES
 
 
 def label_histograms(results_root: Path, datasets: list[str], out: Path) -> None:
@@ -127,7 +127,7 @@ def build_report(results_root: Path, config: dict, models_dir: Path, eval_dir: P
         compare_rows = [[r["scene_id"], str(r["n_particles"]), f"{r['seconds_tiny']:.1f}", f"{r['seconds_cycles']:.1f}",
                          f"{100 * r['mask_agreement']:.1f} %", f"{100 * r['mask_agreement_off_edges']:.2f} %"]
                         for r in summary["scenes"]]
-    from .evaluate import plot_history
+    from .learn.evaluate import plot_history
 
     plot_figs = []
     for a in archs:

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import PsdError
+from .. import PsdError
 from .data import SceneImages, manifest_rows
-from .io import atomic_path, pyplot, save_figure, write_json
+from ..io import atomic_path, pyplot, save_figure, write_json
 from .metrics import NAMES, regression_metrics
 from .train import load_model, pick_device, pick_precision, predict
 

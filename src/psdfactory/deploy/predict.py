@@ -9,10 +9,10 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from . import PsdError
-from .data import normalise, to_input
-from .io import atomic_path, read_png, write_json
-from .models import main_output
+from .. import PsdError
+from ..learn.data import normalise, to_input
+from ..io import atomic_path, read_png, write_json
+from ..learn.models import main_output
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 
@@ -63,7 +63,7 @@ def load_predictor(model_path: Path, device: str = "cpu"):
         meta = json.loads(meta_path.read_text())
         ort = OrtModel(model_path, torch.get_num_threads())
         return (lambda x: ort(x.numpy())), meta
-    from .train import load_model, pick_device
+    from ..learn.train import load_model, pick_device
 
     dev = pick_device(device)
     model, meta = load_model(model_path, dev)
@@ -111,7 +111,7 @@ def export(model_path: Path, out_dir: Path, log=print, int8_results: Path | None
     `int8_results` (a results root) also ``model.int8.onnx``, calibrated on the dataset's
     training images and refused if its overall R² on the test split moves more than
     `max_r2_change` from the fp32 model's."""
-    from .train import load_model
+    from ..learn.train import load_model
 
     model, meta = load_model(model_path, "cpu")
     model = model.float().eval()
@@ -159,9 +159,9 @@ def export(model_path: Path, out_dir: Path, log=print, int8_results: Path | None
 
 def export_int8(model, meta: dict, fp32_onnx: Path, out: Path, results_root: Path, dataset: str,
                 max_r2_change: float, log=print) -> dict:
-    from .data import manifest_rows, normalised_images
-    from .evaluate import eval_rows
-    from .metrics import regression_metrics
+    from ..learn.data import manifest_rows, normalised_images
+    from ..learn.evaluate import eval_rows
+    from ..learn.metrics import regression_metrics
     from .quantize import OrtModel, int8_available, quantize_int8
 
     if not int8_available():

@@ -17,9 +17,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from .models import count_parameters, main_output
+from ..learn.models import count_parameters, main_output
 from .quantize import int8_available
-from .train import autocast, cpu_has_fast_bf16
+from ..learn.train import autocast, cpu_has_fast_bf16
 
 
 def gflops(model: nn.Module, size: int) -> float:
@@ -86,8 +86,8 @@ def benchmark_model(model: nn.Module, meta: dict, device: torch.device, results_
     """Every candidate path on one device: speed at batch 1 and batched, and (with a dataset)
     accuracy on its test split; the fastest within the accuracy budget becomes the "fast" path.
     Without a dataset only speed is measured (int8 is then calibrated on random inputs)."""
-    from .evaluate import eval_rows, predict_rows
-    from .metrics import regression_metrics
+    from ..learn.evaluate import eval_rows, predict_rows
+    from ..learn.metrics import regression_metrics
 
     size = meta["input_size"]
     out = {
@@ -135,8 +135,8 @@ def int8_path(model: nn.Module, meta: dict, results_root: Path | None, dataset: 
     when there is no dataset: then only its speed means anything)."""
     import tempfile
 
-    from .data import manifest_rows, normalised_images
-    from .metrics import regression_metrics
+    from ..learn.data import manifest_rows, normalised_images
+    from ..learn.metrics import regression_metrics
     from .quantize import OrtModel, export_onnx, quantize_int8
 
     size = meta["input_size"]
@@ -165,7 +165,7 @@ def int8_path(model: nn.Module, meta: dict, results_root: Path | None, dataset: 
 def benchmark(model_path: Path, results_root: Path, dataset: str, batch: int, seconds: float, repeats: int,
               device: str = "auto", log=print) -> dict:
     """Speed and accuracy of every path on this machine (CPU, and the GPU when present)."""
-    from .train import load_model, pick_device
+    from ..learn.train import load_model, pick_device
 
     model, meta = load_model(model_path, "cpu")
     devices = [torch.device("cpu")]

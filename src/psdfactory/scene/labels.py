@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import PsdError
+from .. import PsdError
 
 PERCENTILES = (10.0, 50.0, 90.0)
 

@@ -19,9 +19,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from . import PsdError, __version__
+from .. import PsdError, __version__
 from .data import SceneImages, augment_d4, manifest_rows, normalise
-from .io import atomic_path
+from ..io import atomic_path
 from .models import TargetStats, build_model, count_parameters, input_size, main_output
 
 

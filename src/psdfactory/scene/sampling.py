@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr, ndtri
 
-from . import PsdError, __version__
-from .seeding import rng_for, scene_entropy, scene_id
+from .. import PsdError, __version__
+from ..seeding import rng_for, scene_entropy, scene_id
 from .shapes import ShapeParams, make_particles, pack
 
 

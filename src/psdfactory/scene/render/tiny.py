@@ -1,7 +1,7 @@
 """Stage 3: render the settled bed top-down: ``image.png`` (RGB) and ``mask.png`` (16-bit ids).
 
 Backends (``render.backend``): ``tiny`` (below) and ``cycles`` (Blender, photorealistic, in
-``psdfactory.cycles_backend``). Both see the same camera, the same look (particle colours, light
+``psdfactory.scene.render.cycles``). Both see the same camera, the same look (particle colours, light
 direction, table colour) drawn from the scene's render stream, and the same sensor model.
 
 The fast default backend (``tiny``) uses pybullet's TinyRenderer, which is CPU-only and costs
@@ -21,11 +21,11 @@ from typing import Callable
 import numpy as np
 from scipy import ndimage
 
-from . import PsdError
-from .cycles_backend import CyclesParams
-from .physics import CM
-from .seeding import rng_for
-from .geometry import Geometry
+from ... import PsdError
+from .cycles import CyclesParams
+from ..physics import CM
+from ...seeding import rng_for
+from ..geometry import Geometry
 
 Range = tuple[float, float]
 MAX_PARTICLES_16BIT = 65534
@@ -260,7 +260,7 @@ def render_tiny(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.nd
 
 def render_cycles(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams,
                   look: Look, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, dict]:
-    from .cycles_backend import render_cycles as run
+    from .cycles import render_cycles as run
 
     return run(spec, geometry, pos_mm, quats, p, look, rng)
 

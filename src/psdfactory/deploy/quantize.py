@@ -17,8 +17,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .io import atomic_path
-from .models import main_output
+from ..io import atomic_path
+from ..learn.models import main_output
 
 INT8_CPU_FLAGS = ("avx512_vnni", "avx_vnni", "amx_int8")
 

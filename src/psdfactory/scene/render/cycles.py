@@ -1,7 +1,7 @@
 """The Blender Cycles render backend, host side.
 
 Blender as a Python module (``bpy==4.5.15``) needs numpy<2, so it lives in its own
-environment and runs ``blender_scene.py`` in a subprocess. This side writes the scene (meshes,
+environment and runs ``blender_job.py`` in a subprocess. This side writes the scene (meshes,
 poses, the look drawn for the fast backend, Cycles settings) to a temporary folder, runs
 Blender on it and reads back the image and the object-index mask.
 
@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import PsdError
+from ... import PsdError
 
-SCRIPT = Path(__file__).with_name("blender_scene.py")
-REPO = Path(__file__).resolve().parents[2]
+SCRIPT = Path(__file__).with_name("blender_job.py")  # package data: run by Blender's Python, never imported
+REPO = Path(__file__).resolve().parents[4]  # src/psdfactory/scene/render/cycles.py → the checkout
 DEFAULT_PYTHON = REPO / ".venv-blender" / "bin" / "python"
 MAX_PASS_INDEX = 32767  # Blender's Object.pass_index is a signed 16-bit value
 Range = tuple[float, float]

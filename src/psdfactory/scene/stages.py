@@ -22,10 +22,10 @@ from typing import Callable
 
 import numpy as np
 
-from . import PsdError
-from .io import read_json, read_npz, read_parquet, read_png, write_json, write_npz, write_parquet, write_png
+from .. import PsdError
+from ..io import read_json, read_npz, read_parquet, read_png, write_json, write_npz, write_parquet, write_png
 from .geometry import Geometry
-from .seeding import scene_index
+from ..seeding import scene_index
 
 POSE_COLUMNS = ("particle_id", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "settled")
 
@@ -95,7 +95,7 @@ def run_simulate(params: dict, scene_dir: Path) -> dict:
 
 
 def run_render(params: dict, scene_dir: Path) -> dict:
-    from .render import RenderParams, render_scene
+    from .render.tiny import RenderParams, render_scene
 
     t0 = time.perf_counter()
     spec = read_json(scene_dir / "spec.json")
@@ -230,7 +230,7 @@ def up_to_date(stage: str, params: dict, scene_dir: Path) -> bool:
 
 def run_stage(stage: str, params: dict, scene_dir: Path) -> None:
     """Run one stage on one scene folder and record the params it ran with."""
-    from .io import write_json
+    from ..io import write_json
 
     scene_dir = Path(scene_dir)
     p = scene_params(stage, params, scene_dir)
@@ -306,7 +306,7 @@ def run_scenes(stage: str, params: dict, scene_dirs: list[Path], skip_up_to_date
     summary = {"stage": stage, "scenes": [d.name for d in dirs], "ran": [d.name for d in todo],
                "seconds": round(time.perf_counter() - t0, 3)}
     if stamp is not None:
-        from .io import write_json
+        from ..io import write_json
 
         write_json(stamp, summary)
     return summary

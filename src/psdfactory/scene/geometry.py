@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import PsdError
+from .. import PsdError
 
 
 @dataclass

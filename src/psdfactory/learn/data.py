@@ -8,9 +8,9 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from . import PsdError
-from .io import read_png
-from .manifest import read_scenes
+from .. import PsdError
+from ..io import read_png
+from ..manifest import read_scenes
 from .models import TARGETS
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)

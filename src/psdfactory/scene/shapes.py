@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from . import PsdError
+from .. import PsdError
 
 FAMILIES = ("crushed_rock", "granule", "ellipsoid", "mesh")
 MAX_MESH_FACES = 5000

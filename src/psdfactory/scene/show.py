@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import pyplot, read_png, save_figure
-from .manifest import read_scenes
+from ..io import pyplot, read_png, save_figure
+from ..manifest import read_scenes
 
 
 def colorize_mask(mask: np.ndarray) -> np.ndarray:
@@ -63,10 +63,10 @@ def compare_backends(results_root: Path, dataset: str, n: int, render_params: di
     import shutil
     import time
 
-    from . import PsdError
-    from .cycles_backend import blender_python
-    from .io import write_json
-    from .scene import run_render
+    from .. import PsdError
+    from .render.cycles import blender_python
+    from ..io import write_json
+    from .stages import run_render
 
     try:
         blender_python()

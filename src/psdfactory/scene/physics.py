@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import PsdError
-from .seeding import rng_for
+from .. import PsdError
+from ..seeding import rng_for
 from .geometry import Geometry
 
 CM = 0.1  # mm → cm

@@ -2,10 +2,10 @@
 in its own environment with numpy<2), so it imports only bpy, mathutils, numpy and the
 standard library — never the psdfactory package.
 
-    <blender-python> blender_scene.py JOB_DIR
+    <blender-python> -P blender_job.py JOB_DIR
 
 JOB_DIR holds ``scene.json`` (camera, lights, materials, Cycles settings) and ``scene.npz``
-(particle meshes in mm, poses, colours) written by ``psdfactory.cycles_backend``. Writes
+(particle meshes in mm, poses, colours) written by ``psdfactory.scene.render.cycles``. Writes
 ``image.png`` (8-bit sRGB, Blender's "Standard" view), ``ids.npy`` (uint16 instance ids from
 the object-index pass: 0 = table, k = particle_id + 1) and ``result.json`` (device, seconds).
 Lengths are converted from mm to Blender metres.
