@@ -202,7 +202,7 @@ def test_prepare_rescales_to_the_model_scale():
 
 
 def test_export_matches_pytorch(trained, tmp_path):
-    from psdfactory.deploy.predict import export
+    from psdfactory.deploy.export import export
 
     rep = export(trained[0] / "model.pt", tmp_path / "exp", log=lambda m: None)
     assert (tmp_path / "exp" / "model.onnx").is_file() and (tmp_path / "exp" / "model.torchscript.pt").is_file()
@@ -213,7 +213,8 @@ def test_export_matches_pytorch(trained, tmp_path):
 
 
 def test_int8_export_is_checked_and_predicts_like_pytorch(dataset, trained, tmp_path):
-    from psdfactory.deploy.predict import export, predict_files
+    from psdfactory.deploy.export import export
+    from psdfactory.deploy.predict import predict_files
 
     model = trained[0] / "model.pt"
     # a budget no model can meet: refused, and nothing left under the final name
@@ -244,7 +245,7 @@ def test_train_params_slice_ignores_scene_settings():
 
 
 def test_load_model_rejects_other_files(tmp_path):
-    from psdfactory.learn.train import load_model
+    from psdfactory.learn.runtime import load_model
 
     bad = tmp_path / "x.pt"
     torch.save({"hello": 1}, bad)

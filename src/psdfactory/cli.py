@@ -116,7 +116,7 @@ def cmd_predict(a: argparse.Namespace) -> int:
 
 
 def cmd_export(a: argparse.Namespace) -> None:
-    from .deploy.predict import export
+    from .deploy.export import export
 
     export(Path(a.model), Path(a.out_dir), int8_results=Path(a.int8) if a.int8 else None, dataset=a.dataset,
            max_r2_change=a.int8_max_r2_change)

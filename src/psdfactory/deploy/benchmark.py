@@ -19,7 +19,7 @@ from torch import nn
 
 from ..learn.models import count_parameters, main_output
 from .quantize import int8_available
-from ..learn.train import autocast, cpu_has_fast_bf16
+from ..learn.runtime import autocast, cpu_has_fast_bf16
 
 
 def gflops(model: nn.Module, size: int) -> float:
@@ -165,7 +165,7 @@ def int8_path(model: nn.Module, meta: dict, results_root: Path | None, dataset: 
 def benchmark(model_path: Path, results_root: Path, dataset: str, batch: int, seconds: float, repeats: int,
               device: str = "auto", log=print) -> dict:
     """Speed and accuracy of every path on this machine (CPU, and the GPU when present)."""
-    from ..learn.train import load_model, pick_device
+    from ..learn.runtime import load_model, pick_device
 
     model, meta = load_model(model_path, "cpu")
     devices = [torch.device("cpu")]

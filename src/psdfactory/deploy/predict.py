@@ -1,4 +1,4 @@
-"""``psdfactory predict``: d10/d50/d90 in mm for new images, and ``export`` for deployment."""
+"""``psdfactory predict``: d10/d50/d90 in mm for new images, with a ``model.pt`` or an exported ``.onnx``."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import torch
 from torch.nn import functional as F
 
 from .. import PsdError
-from ..learn.data import normalise, to_input
 from ..io import atomic_path, read_png, write_json
+from ..learn.data import normalise, to_input
 from ..learn.models import main_output
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
@@ -63,7 +63,7 @@ def load_predictor(model_path: Path, device: str = "cpu"):
         meta = json.loads(meta_path.read_text())
         ort = OrtModel(model_path, torch.get_num_threads())
         return (lambda x: ort(x.numpy())), meta
-    from ..learn.train import load_model, pick_device
+    from ..learn.runtime import load_model, pick_device
 
     dev = pick_device(device)
     model, meta = load_model(model_path, dev)
@@ -103,88 +103,3 @@ def write_predictions(rows: list[dict], out: Path) -> None:
         w = csv.DictWriter(f, fieldnames=["image", "d10_mm", "d50_mm", "d90_mm", "error"])
         w.writeheader()
         w.writerows(rows)
-
-
-def export(model_path: Path, out_dir: Path, log=print, int8_results: Path | None = None, dataset: str = "train",
-           max_r2_change: float = 0.005) -> dict:
-    """ONNX and TorchScript copies of a model, each checked against the PyTorch output; with
-    `int8_results` (a results root) also ``model.int8.onnx``, calibrated on the dataset's
-    training images and refused if its overall R² on the test split moves more than
-    `max_r2_change` from the fp32 model's."""
-    from ..learn.train import load_model
-
-    model, meta = load_model(model_path, "cpu")
-    model = model.float().eval()
-    size = meta["input_size"]
-    x = torch.randn(2, 3, size, size)
-    with torch.inference_mode():
-        ref = main_output(model(x)).numpy()
-
-    from .quantize import OutputOnly, export_onnx
-
-    wrapped = OutputOnly(model).eval()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    report = {"arch": meta["arch"], "input_size": size, "input": "float32 Nx3xSxS, RGB/255 normalised with ImageNet mean/std",
-              "output": "float32 Nx3: d10, d50, d90 in mm (number-weighted)", "mm_per_px": meta["mm_per_px"]}
-
-    ts_path = out_dir / "model.torchscript.pt"
-    with torch.no_grad():
-        traced = torch.jit.trace(wrapped, x)
-    with atomic_path(ts_path) as tmp:
-        traced.save(str(tmp))
-    loaded = torch.jit.load(str(ts_path))
-    with torch.inference_mode():
-        ts_out = loaded(x).numpy()
-    report["torchscript"] = {"path": str(ts_path), "max_abs_diff_mm": float(np.abs(ts_out - ref).max())}
-
-    onnx_path = out_dir / "model.onnx"
-    export_onnx(model, size, onnx_path)
-    import onnxruntime as ort
-
-    sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
-    onnx_out = sess.run(None, {"images": x.numpy()})[0]
-    report["onnx"] = {"path": str(onnx_path), "max_abs_diff_mm": float(np.abs(onnx_out - ref).max())}
-    for k in ("torchscript", "onnx"):
-        diff = report[k]["max_abs_diff_mm"]
-        if not diff < 1e-3:
-            raise PsdError(f"{k} export differs from PyTorch by {diff:.2e} mm (tolerance 1e-3 mm)")
-        log(f"{k}: {report[k]['path']} (max |difference| vs PyTorch {diff:.1e} mm)")
-    if int8_results is not None:
-        report["int8"] = export_int8(model, meta, onnx_path, out_dir / "model.int8.onnx", Path(int8_results), dataset,
-                                     max_r2_change, log)
-    write_json(out_dir / "export.json", report)
-    write_json(out_dir / "meta.json", meta)
-    return report
-
-
-def export_int8(model, meta: dict, fp32_onnx: Path, out: Path, results_root: Path, dataset: str,
-                max_r2_change: float, log=print) -> dict:
-    from ..learn.data import manifest_rows, normalised_images
-    from ..learn.evaluate import eval_rows
-    from ..learn.metrics import regression_metrics
-    from .quantize import OrtModel, int8_available, quantize_int8
-
-    if not int8_available():
-        log("note: this CPU has no VNNI/AMX-INT8; the int8 model will be correct but not faster here")
-    size = meta["input_size"]
-    calib_rows = manifest_rows(results_root, dataset, ("train",))[:64]
-    if not calib_rows:
-        raise PsdError(f"dataset {dataset!r} under {results_root} has no training scenes to calibrate int8 on")
-    calib = normalised_images(results_root, calib_rows, size)[0].numpy()
-    tmp_out = out.with_name(".candidate." + out.name)
-    quantize_int8(fp32_onnx, tmp_out, calib)
-    x, y = normalised_images(results_root, eval_rows(results_root, dataset), size)
-    ort = OrtModel(tmp_out, torch.get_num_threads())
-    with torch.inference_mode():
-        p32 = main_output(model(x)).numpy()
-    p8 = np.concatenate([ort(x[i : i + 32].numpy()) for i in range(0, len(x), 32)])
-    r2_32, r2_8 = regression_metrics(y, p32)["overall"]["r2"], regression_metrics(y, p8)["overall"]["r2"]
-    info = {"path": str(out), "calibration_images": len(calib_rows), "test_scenes": len(y), "r2_fp32": r2_32,
-            "r2_int8": r2_8, "r2_change": r2_8 - r2_32, "max_abs_diff_mm": float(np.abs(p8 - p32).max())}
-    if abs(r2_8 - r2_32) > max_r2_change:
-        tmp_out.unlink()
-        raise PsdError(f"int8 model refused: overall R² {r2_8:.4f} vs fp32 {r2_32:.4f} on {len(y)} test scenes "
-                       f"(change {r2_8 - r2_32:+.4f}, allowed ±{max_r2_change}); use the fp32 model.onnx")
-    tmp_out.replace(out)
-    log(f"int8: {out} (R² {r2_32:.4f} → {r2_8:.4f} on {len(y)} test scenes; calibrated on {len(calib_rows)} images)")
-    return info

@@ -12,7 +12,7 @@ from .. import PsdError
 from .data import SceneImages, manifest_rows
 from ..io import atomic_path, pyplot, save_figure, write_json
 from .metrics import NAMES, regression_metrics
-from .train import load_model, pick_device, pick_precision, predict
+from .runtime import load_model, pick_device, pick_precision, predict_batches
 
 
 def eval_rows(results_root: Path, dataset: str) -> list[dict]:
@@ -25,7 +25,7 @@ def eval_rows(results_root: Path, dataset: str) -> list[dict]:
 def predict_rows(model, meta: dict, results_root: Path, rows: list[dict], device, precision: str, batch_size: int = 32):
     ds = SceneImages(results_root, rows, meta["input_size"], cache=False)
     loader = torch.utils.data.DataLoader(ds, batch_size=batch_size)
-    pred, y = predict(model, loader, device, precision)
+    pred, y = predict_batches(model, loader, device, precision)
     return pred.numpy(), y.numpy()
 
 

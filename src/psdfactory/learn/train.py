@@ -11,7 +11,6 @@ import hashlib
 import json
 import math
 import time
-from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -20,9 +19,10 @@ import torch
 from torch import nn
 
 from .. import PsdError, __version__
-from .data import SceneImages, augment_d4, manifest_rows, normalise
 from ..io import atomic_path
-from .models import TargetStats, build_model, count_parameters, input_size, main_output
+from .data import SceneImages, augment_d4, manifest_rows, normalise
+from .models import TargetStats, build_model, count_parameters, input_size
+from .runtime import autocast, faster_cpu_precision, loss_fn, pick_device, pick_precision, predict_batches, save_model
 
 
 @dataclass(frozen=True)
@@ -52,62 +52,6 @@ class TrainParams:
         return cls(**d)
 
 
-def pick_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise PsdError(f"device {name!r} asked for, but CUDA is not available here")
-    return torch.device(name)
-
-
-def cpu_has_fast_bf16() -> bool:
-    """AVX512-BF16 or AMX: bf16 matmuls/convolutions run natively (measured 3-4× over fp32)."""
-    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
-    return any(getattr(torch.cpu, c, lambda: False)() for c in checks)
-
-
-def pick_precision(name: str, device: torch.device) -> str:
-    if name != "auto":
-        return name
-    if device.type == "cuda":
-        return "bf16" if torch.cuda.is_bf16_supported() else "fp16"
-    return "bf16" if cpu_has_fast_bf16() else "fp32"
-
-
-def autocast(device: torch.device, precision: str):
-    if precision == "fp32":
-        return nullcontext()
-    dtype = torch.bfloat16 if precision == "bf16" else torch.float16
-    return torch.autocast(device.type, dtype=dtype)
-
-
-def faster_cpu_precision(model: nn.Module, size: int, batch: int, stats: TargetStats, aux_weight: float, log=print) -> str:
-    """bf16 autocast or fp32 for CPU training, whichever trains this model faster here.
-
-    Native bf16 helps the big convolutions (ResNet-50: ~2×) but not always the depthwise ones
-    (EfficientNet-B0 can be slower in bf16), so 'auto' times one forward+backward pass of each
-    (after a warm-up) without stepping the optimiser, and keeps the faster.
-    """
-    x = torch.randn(batch, 3, size, size).contiguous(memory_format=torch.channels_last)
-    y = torch.zeros(batch, 3)
-    dev = torch.device("cpu")
-    times = {}
-    saved = {k: v.clone() for k, v in model.state_dict().items()}  # BatchNorm statistics move in train mode
-    model.train()
-    for prec in ("bf16", "fp32"):
-        for k in range(2):
-            t0 = time.perf_counter()
-            with autocast(dev, prec):
-                out = model(x)
-            loss_fn(out, y, stats, aux_weight).backward()
-            times[prec] = time.perf_counter() - t0
-    model.zero_grad(set_to_none=True)
-    model.load_state_dict(saved)
-    pick = "bf16" if times["bf16"] < times["fp32"] else "fp32"
-    log(f"precision auto: one training batch takes {times['bf16']:.2f} s in bf16, {times['fp32']:.2f} s in fp32 → {pick}")
-    return pick
-
-
 def fingerprint(params: TrainParams, rows: list[dict]) -> str:
     """What a resumable checkpoint must match: the settings and the exact training scenes."""
     ids = [(r["scene_id"], r["split"], r["d10_mm"], r["d50_mm"], r["d90_mm"]) for r in rows]
@@ -126,16 +70,6 @@ class History:
             w.writeheader()
             for r in self.rows:
                 w.writerow({k: r[k] for k in keys})
-
-
-def loss_fn(model_out, y_std: torch.Tensor, stats: TargetStats, aux_weight: float) -> torch.Tensor:
-    mse = nn.functional.mse_loss
-    main = main_output(model_out).float()
-    loss = mse(stats.standardise(main), y_std)
-    aux = getattr(model_out, "aux_logits", None)
-    if aux is not None and aux_weight > 0:
-        loss = loss + aux_weight * mse(stats.standardise(aux.float()), y_std)
-    return loss
 
 
 def run_epoch(model, loader, stats, opt, device, precision, aux_weight, gen, augment, bar=None) -> float:
@@ -160,41 +94,6 @@ def run_epoch(model, loader, stats, opt, device, precision, aux_weight, gen, aug
             bar.update(len(x))
             bar.set_postfix(loss=f"{total / n:.4f}")
     return total / max(n, 1)
-
-
-@torch.no_grad()
-def predict(model, loader, device, precision) -> tuple[torch.Tensor, torch.Tensor]:
-    model.eval()
-    preds, ys = [], []
-    for x, y in loader:
-        x = normalise(x.to(device)).contiguous(memory_format=torch.channels_last)
-        with autocast(device, precision):
-            preds.append(main_output(model(x)).float().cpu())
-        ys.append(y)
-    return torch.cat(preds), torch.cat(ys)
-
-
-def save_model(path: Path, model: nn.Module, meta: dict) -> None:
-    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-    with atomic_path(path) as tmp:
-        torch.save({"meta": meta, "state_dict": state}, tmp)
-
-
-def load_model(path: Path, device: torch.device | str = "cpu") -> tuple[nn.Module, dict]:
-    path = Path(path)
-    if not path.is_file():
-        raise PsdError(f"model file not found: {path}")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-        meta = ckpt["meta"]
-        stats = TargetStats(**meta["target_stats"])
-        model, _ = build_model(meta["arch"], stats, "none", size=meta["input_size"], log=lambda m: None)
-        model.load_state_dict(ckpt["state_dict"])
-    except PsdError:
-        raise
-    except Exception as e:
-        raise PsdError(f"{path} is not a psdfactory model ({type(e).__name__}: {e})") from None
-    return model.to(device).eval(), meta
 
 
 def train(params: TrainParams, results_root: Path, out_dir: Path, log=print) -> dict:
@@ -274,7 +173,7 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, log=print) -> 
         with tqdm(total=len(train_ds), desc=f"{params.arch} epoch {epoch + 1}/{params.epochs}", unit="img",
                   mininterval=2.0, leave=True) as bar:
             train_loss = run_epoch(model, train_loader, stats, opt, device, precision, params.aux_loss_weight, gen, params.augment, bar)
-        pred, y = predict(model, val_loader, device, precision)
+        pred, y = predict_batches(model, val_loader, device, precision)
         val_loss = float(nn.functional.mse_loss(stats.standardise(pred), stats.standardise(y)))
         val_mae = float((pred - y).abs().mean())
         sched.step(val_loss)
