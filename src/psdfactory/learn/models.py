@@ -15,9 +15,9 @@ import torch
 from torch import nn
 
 from .. import PsdError
+from ..config import DEFAULT_INPUT_SIZE as DEFAULT_INPUT
 
 TARGETS = ("d10_mm", "d50_mm", "d90_mm")
-from ..config import DEFAULT_INPUT_SIZE as DEFAULT_INPUT  # noqa: E402  (one source of truth)
 MIN_INPUT = {"inception_v3": 75}
 
 

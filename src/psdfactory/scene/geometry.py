@@ -1,4 +1,5 @@
-"""The packed particle meshes of one scene (``geometry.npz``), shared by all stages.
+"""The packed particle meshes of one scene (``geometry.npz``), shared by all stages, and the
+length unit they are handed to pybullet in.
 
 Only numpy here: the simulate, render and label stages import this without the cost of scipy.
 """
@@ -10,6 +11,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import PsdError
+
+# pybullet's length unit here, for the physics and the TinyRenderer alike: centimetres (millimetres
+# and metres were measured to misbehave in Bullet). Everything outside pybullet is in mm.
+CM = 0.1  # mm → cm
 
 
 @dataclass

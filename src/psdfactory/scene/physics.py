@@ -14,9 +14,8 @@ import numpy as np
 
 from .. import PsdError
 from ..seeding import rng_for
-from .geometry import Geometry
+from .geometry import CM, Geometry
 
-CM = 0.1  # mm → cm
 GROUP_ACTIVE, GROUP_FROZEN, GROUP_WALLS = 1, 2, 4
 GROUP_ALL = GROUP_ACTIVE | GROUP_FROZEN | GROUP_WALLS
 

@@ -23,9 +23,8 @@ from scipy import ndimage
 
 from ... import PsdError
 from .cycles import CyclesParams
-from ..physics import CM
 from ...seeding import rng_for
-from ..geometry import Geometry
+from ..geometry import CM, Geometry
 
 Range = tuple[float, float]
 MAX_PARTICLES_16BIT = 65534
