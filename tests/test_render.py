@@ -3,7 +3,8 @@ import pytest
 
 from psdfactory import PsdError
 from psdfactory.io import read_json, read_png
-from psdfactory.scene.render.tiny import RenderParams, downsample, shade_from_height
+from psdfactory.scene.render.look import RenderParams
+from psdfactory.scene.render.tiny import downsample, shade_from_height
 from psdfactory.scene.stages import load_poses
 
 pytestmark = pytest.mark.slow

@@ -95,7 +95,7 @@ def run_simulate(params: dict, scene_dir: Path) -> dict:
 
 
 def run_render(params: dict, scene_dir: Path) -> dict:
-    from .render.tiny import RenderParams, render_scene
+    from .render import RenderParams, render_scene
 
     t0 = time.perf_counter()
     spec = read_json(scene_dir / "spec.json")

@@ -1,10 +1,4 @@
-"""Stage 3: render the settled bed top-down: ``image.png`` (RGB) and ``mask.png`` (16-bit ids).
-
-Backends (``render.backend``): ``tiny`` (below) and ``cycles`` (Blender, photorealistic, in
-``psdfactory.scene.render.cycles``). Both see the same camera, the same look (particle colours, light
-direction, table colour) drawn from the scene's render stream, and the same sensor model.
-
-The fast default backend (``tiny``) uses pybullet's TinyRenderer, which is CPU-only and costs
+"""The fast default render backend, ``tiny``: pybullet's TinyRenderer, CPU-only, whose cost is
 per pixel. A far camera with a narrow field of view gives a metric top-down view in which the
 table exactly fills the image, so ``mm_per_px = table_size / resolution``.
 TinyRenderer has no anti-aliasing and no working cast shadows, so the image is supersampled
@@ -15,109 +9,12 @@ Mask values: 0 = table, k = particle_id + 1.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
-from typing import Callable
 
 import numpy as np
 from scipy import ndimage
 
-from ... import PsdError
-from .cycles import CyclesParams
-from ...seeding import rng_for
 from ..geometry import CM, Geometry
-
-Range = tuple[float, float]
-MAX_PARTICLES_16BIT = 65534
-
-
-@dataclass(frozen=True)
-class RenderParams:
-    backend: str = "tiny"
-    resolution: int = 512
-    supersample: int = 2
-    camera_height_mm: float = 20000.0
-    # light: direction toward the light, drawn per scene
-    light_azimuth_deg: Range = (0.0, 360.0)
-    light_elevation_deg: Range = (35.0, 70.0)
-    light_intensity: Range = (0.85, 1.15)
-    ambient: Range = (0.35, 0.5)
-    shadow_strength: Range = (0.35, 0.6)
-    occlusion_strength: Range = (0.4, 0.8)
-    # materials
-    palette: tuple[tuple[float, float, float], ...] = ((0.55, 0.52, 0.48), (0.45, 0.40, 0.35), (0.62, 0.60, 0.58))
-    particle_brightness: Range = (0.75, 1.25)
-    particle_hue_jitter: float = 0.03
-    surface_detail: float = 0.06
-    table_rgb: tuple[float, float, float] = (0.22, 0.24, 0.27)
-    table_brightness: Range = (0.8, 1.2)
-    table_texture: float = 0.08
-    # camera / sensor
-    exposure: Range = (0.9, 1.1)
-    white_balance_jitter: float = 0.04
-    vignetting: Range = (0.0, 0.15)
-    blur_px: Range = (0.0, 0.5)
-    noise_sigma: Range = (0.004, 0.015)  # read noise, fraction of full scale
-    shot_noise: Range = (0.002, 0.01)
-    cycles: CyclesParams = field(default_factory=CyclesParams)  # the Cycles backend's settings
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "RenderParams":
-        kw = {}
-        for k, v in d.items():
-            if k not in cls.__dataclass_fields__:
-                raise PsdError(f"unknown render setting {k!r}")
-            if k == "cycles":
-                v = CyclesParams.from_dict(v)
-            elif k == "palette":
-                v = tuple(tuple(map(float, c)) for c in v)
-            elif isinstance(v, list):
-                v = tuple(v)
-            kw[k] = v
-        return cls(**kw)
-
-
-@dataclass
-class Look:
-    """The randomised look of one scene (recorded in render.json)."""
-
-    light_dir: list[float]
-    light_azimuth_deg: float
-    light_elevation_deg: float
-    light_intensity: float
-    ambient: float
-    shadow_strength: float
-    occlusion_strength: float
-    table_rgb: list[float]
-    exposure: float
-    white_balance: list[float]
-    vignetting: float
-    blur_px: float
-    noise_sigma: float
-    shot_noise: float
-    particle_rgb: np.ndarray = field(repr=False)
-
-
-def draw_look(rng: np.random.Generator, p: RenderParams, n: int) -> Look:
-    u = lambda r: float(rng.uniform(*r))  # noqa: E731
-    az, el = u(p.light_azimuth_deg), u(p.light_elevation_deg)
-    a, e = math.radians(az), math.radians(el)
-    light_dir = [math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)]
-    palette = np.asarray(p.palette, dtype=float)
-    base = palette[rng.integers(len(palette), size=n)]
-    bright = rng.uniform(*p.particle_brightness, size=(n, 1))
-    hue = 1 + rng.uniform(-p.particle_hue_jitter, p.particle_hue_jitter, size=(n, 3))
-    rgb = np.clip(base * bright * hue, 0.02, 1.0)
-    table = np.clip(np.asarray(p.table_rgb) * u(p.table_brightness), 0, 1)
-    wb = 1 + rng.uniform(-p.white_balance_jitter, p.white_balance_jitter, size=3)
-    return Look(
-        light_dir, az, el, u(p.light_intensity), u(p.ambient), u(p.shadow_strength), u(p.occlusion_strength),
-        table.tolist(), u(p.exposure), wb.tolist(), u(p.vignetting), u(p.blur_px), u(p.noise_sigma),
-        u(p.shot_noise), rgb,
-    )
-
-
-def mm_per_px(table_size_mm: float, resolution: int) -> float:
-    return table_size_mm / resolution
+from .look import Look, RenderParams, mm_per_px
 
 
 def visual_meshes(geometry: Geometry, smooth: bool, scale: float) -> list[tuple[list, list, list]]:
@@ -257,16 +154,6 @@ def render_tiny(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.nd
     return rgb, mask, {"supersample": s}
 
 
-def render_cycles(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams,
-                  look: Look, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, dict]:
-    from .cycles import render_cycles as run
-
-    return run(spec, geometry, pos_mm, quats, p, look, rng)
-
-
-BACKENDS: dict[str, Callable] = {"tiny": render_tiny, "cycles": render_cycles}
-
-
 def downsample(a: np.ndarray, s: int) -> np.ndarray:
     """Box-filter anti-aliasing: mean over s×s blocks."""
     if s == 1:
@@ -291,45 +178,3 @@ def shade_tiny(rgb: np.ndarray, ids: np.ndarray, height: np.ndarray, look: Look,
     occl = np.clip((ndimage.gaussian_filter(hgt, 2.5 / px_mm) - hgt) / 3.0, 0, 1)
     light = (1 - look.shadow_strength * shadow) * (1 - look.occlusion_strength * occl)
     return rgb * light[..., None]
-
-
-def apply_sensor(img: np.ndarray, look: Look, p: RenderParams, rng: np.random.Generator) -> np.ndarray:
-    """The camera: exposure, white balance, vignetting, defocus and noise → uint8 RGB."""
-    r = p.resolution
-    yy, xx = np.mgrid[0:r, 0:r]
-    rad2 = ((xx - r / 2) ** 2 + (yy - r / 2) ** 2) / (r / 2) ** 2 / 2
-    img = img * look.exposure * np.asarray(look.white_balance, dtype=np.float32) * (1 - look.vignetting * rad2)[..., None]
-    if look.blur_px > 0.05:
-        img = ndimage.gaussian_filter(img, (look.blur_px, look.blur_px, 0))
-    img = np.clip(img, 0, 1)
-    noise = rng.standard_normal(img.shape).astype(np.float32)
-    img = img + noise * np.sqrt(look.noise_sigma**2 + look.shot_noise * img)
-    return np.clip(np.round(img * 255), 0, 255).astype(np.uint8)
-
-
-def render_scene(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams, entropy: list[int]):
-    """→ (image uint8 HxWx3, mask uint16 HxW, metadata dict)."""
-    if p.backend not in BACKENDS:
-        raise PsdError(f"unknown render backend {p.backend!r}; available: {', '.join(BACKENDS)}")
-    if len(pos_mm) != len(geometry):
-        raise PsdError(f"poses hold {len(pos_mm)} particles but the spec has {len(geometry)}; rerun simulate")
-    n = len(geometry)
-    if n > MAX_PARTICLES_16BIT:
-        raise PsdError(f"{n} particles do not fit a 16-bit mask (max {MAX_PARTICLES_16BIT})")
-    rng = rng_for(entropy, "render")
-    px_mm = mm_per_px(float(spec["table_size"]), p.resolution)
-    look = draw_look(rng, p, n)  # the same look (colours, light) for every backend
-    rgb, mask, extra = BACKENDS[p.backend](spec, geometry, pos_mm, quats, p, look, rng)
-    image = apply_sensor(rgb, look, p, rng)
-    look_meta = {k: v for k, v in asdict(look).items() if k != "particle_rgb"}
-    meta = {
-        "backend": p.backend,
-        "resolution": p.resolution,
-        **extra,
-        "mm_per_px": px_mm,
-        "table_size_mm": float(spec["table_size"]),
-        "camera_height_mm": p.camera_height_mm,
-        "image_origin": "row 0 = +y edge of the table, column 0 = -x edge",
-        "look": look_meta,
-    }
-    return image, mask, meta

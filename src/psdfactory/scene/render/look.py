@@ -1,0 +1,120 @@
+"""What both render backends share: the render settings, the look drawn per scene (light,
+particle and table colours) so that both see the same one, the camera's scale, and the sensor
+model that turns either backend's image into the final 8-bit RGB."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from ... import PsdError
+from .cycles import CyclesParams
+
+Range = tuple[float, float]
+
+
+@dataclass(frozen=True)
+class RenderParams:
+    backend: str = "tiny"
+    resolution: int = 512
+    supersample: int = 2
+    camera_height_mm: float = 20000.0
+    # light: direction toward the light, drawn per scene
+    light_azimuth_deg: Range = (0.0, 360.0)
+    light_elevation_deg: Range = (35.0, 70.0)
+    light_intensity: Range = (0.85, 1.15)
+    ambient: Range = (0.35, 0.5)
+    shadow_strength: Range = (0.35, 0.6)
+    occlusion_strength: Range = (0.4, 0.8)
+    # materials
+    palette: tuple[tuple[float, float, float], ...] = ((0.55, 0.52, 0.48), (0.45, 0.40, 0.35), (0.62, 0.60, 0.58))
+    particle_brightness: Range = (0.75, 1.25)
+    particle_hue_jitter: float = 0.03
+    surface_detail: float = 0.06
+    table_rgb: tuple[float, float, float] = (0.22, 0.24, 0.27)
+    table_brightness: Range = (0.8, 1.2)
+    table_texture: float = 0.08
+    # camera / sensor
+    exposure: Range = (0.9, 1.1)
+    white_balance_jitter: float = 0.04
+    vignetting: Range = (0.0, 0.15)
+    blur_px: Range = (0.0, 0.5)
+    noise_sigma: Range = (0.004, 0.015)  # read noise, fraction of full scale
+    shot_noise: Range = (0.002, 0.01)
+    cycles: CyclesParams = field(default_factory=CyclesParams)  # the Cycles backend's settings
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RenderParams":
+        kw = {}
+        for k, v in d.items():
+            if k not in cls.__dataclass_fields__:
+                raise PsdError(f"unknown render setting {k!r}")
+            if k == "cycles":
+                v = CyclesParams.from_dict(v)
+            elif k == "palette":
+                v = tuple(tuple(map(float, c)) for c in v)
+            elif isinstance(v, list):
+                v = tuple(v)
+            kw[k] = v
+        return cls(**kw)
+
+
+@dataclass
+class Look:
+    """The randomised look of one scene (recorded in render.json)."""
+
+    light_dir: list[float]
+    light_azimuth_deg: float
+    light_elevation_deg: float
+    light_intensity: float
+    ambient: float
+    shadow_strength: float
+    occlusion_strength: float
+    table_rgb: list[float]
+    exposure: float
+    white_balance: list[float]
+    vignetting: float
+    blur_px: float
+    noise_sigma: float
+    shot_noise: float
+    particle_rgb: np.ndarray = field(repr=False)
+
+
+def draw_look(rng: np.random.Generator, p: RenderParams, n: int) -> Look:
+    u = lambda r: float(rng.uniform(*r))  # noqa: E731
+    az, el = u(p.light_azimuth_deg), u(p.light_elevation_deg)
+    a, e = math.radians(az), math.radians(el)
+    light_dir = [math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)]
+    palette = np.asarray(p.palette, dtype=float)
+    base = palette[rng.integers(len(palette), size=n)]
+    bright = rng.uniform(*p.particle_brightness, size=(n, 1))
+    hue = 1 + rng.uniform(-p.particle_hue_jitter, p.particle_hue_jitter, size=(n, 3))
+    rgb = np.clip(base * bright * hue, 0.02, 1.0)
+    table = np.clip(np.asarray(p.table_rgb) * u(p.table_brightness), 0, 1)
+    wb = 1 + rng.uniform(-p.white_balance_jitter, p.white_balance_jitter, size=3)
+    return Look(
+        light_dir, az, el, u(p.light_intensity), u(p.ambient), u(p.shadow_strength), u(p.occlusion_strength),
+        table.tolist(), u(p.exposure), wb.tolist(), u(p.vignetting), u(p.blur_px), u(p.noise_sigma),
+        u(p.shot_noise), rgb,
+    )
+
+
+def mm_per_px(table_size_mm: float, resolution: int) -> float:
+    return table_size_mm / resolution
+
+
+def apply_sensor(img: np.ndarray, look: Look, p: RenderParams, rng: np.random.Generator) -> np.ndarray:
+    """The camera: exposure, white balance, vignetting, defocus and noise → uint8 RGB."""
+    r = p.resolution
+    yy, xx = np.mgrid[0:r, 0:r]
+    rad2 = ((xx - r / 2) ** 2 + (yy - r / 2) ** 2) / (r / 2) ** 2 / 2
+    img = img * look.exposure * np.asarray(look.white_balance, dtype=np.float32) * (1 - look.vignetting * rad2)[..., None]
+    if look.blur_px > 0.05:
+        img = ndimage.gaussian_filter(img, (look.blur_px, look.blur_px, 0))
+    img = np.clip(img, 0, 1)
+    noise = rng.standard_normal(img.shape).astype(np.float32)
+    img = img + noise * np.sqrt(look.noise_sigma**2 + look.shot_noise * img)
+    return np.clip(np.round(img * 255), 0, 255).astype(np.uint8)
