@@ -1,7 +1,8 @@
 """Deterministic random streams.
 
-Every random draw of a scene comes from (global seed, dataset name, scene index, stage),
-so adding scenes never changes existing ones and each stage has its own stream.
+Every random draw of a scene comes from (global seed, dataset name, scene index, stream),
+so adding scenes never changes existing ones and each use (a stage, the particle shapes, the
+split) has its own stream. (The stage runners are ``scene.stages.STAGES``.)
 """
 
 from __future__ import annotations
@@ -10,8 +11,9 @@ import hashlib
 
 import numpy as np
 
-# Stage keys keep the streams of the stages independent of each other.
-STAGES = {"sample": 1, "shape": 2, "simulate": 3, "render": 4, "split": 5}
+# The random streams of a scene, independent of each other. The numbers are part of every seed:
+# changing one changes every scene.
+STREAMS = {"sample": 1, "shape": 2, "simulate": 3, "render": 4, "split": 5}
 
 
 def name_key(name: str) -> int:
@@ -23,9 +25,9 @@ def scene_entropy(seed: int, dataset: str, index: int) -> list[int]:
     return [int(seed), name_key(dataset), int(index)]
 
 
-def rng_for(entropy: list[int], stage: str, attempt: int = 0) -> np.random.Generator:
-    """The generator of one stage of one scene (attempt > 0 for retries)."""
-    return np.random.default_rng([*entropy, STAGES[stage], int(attempt)])
+def rng_for(entropy: list[int], stream: str, attempt: int = 0) -> np.random.Generator:
+    """The generator of one stream of one scene (attempt > 0 for retries)."""
+    return np.random.default_rng([*entropy, STREAMS[stream], int(attempt)])
 
 
 def scene_id(dataset: str, index: int) -> str:
