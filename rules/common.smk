@@ -14,6 +14,8 @@ from psdfactory import config as psd_config
 from psdfactory.scene.stages import SCENE_FILES, STAGES
 from psdfactory.seeding import scene_id, scene_index
 
+# Validated against the package's schema, src/psdfactory/config.schema.yaml (psd_config.SCHEMA): the
+# one schema file, which `psdfactory check-config` reads too.
 try:
     psd_config.validate(config)  # Snakemake's own JSON-schema validation, defaults filled in
 except PsdError as e:

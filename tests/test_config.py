@@ -67,6 +67,16 @@ def test_stage_params_only_hold_their_slice():
     assert psd_config.manifest_params(a, "tiny") != psd_config.manifest_params(b, "tiny")
 
 
+def test_the_schema_is_one_file_that_the_package_ships():
+    """The workflow and `psdfactory check-config` read this file; a wheel carries it."""
+    import fnmatch
+    import tomllib
+
+    assert psd_config.SCHEMA.is_file() and not psd_config.SCHEMA.is_symlink()
+    data = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    assert any(fnmatch.fnmatch(psd_config.SCHEMA.name, pat) for pat in data["psdfactory"])
+
+
 def test_shards():
     cfg = tiny_config(n_scenes=5, shard_size=2)
     assert psd_config.n_shards(cfg, "tiny") == 3

@@ -6,6 +6,7 @@ import copy
 import os
 import shutil
 import stat
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -83,6 +84,16 @@ def test_cycles_is_deterministic(both, tmp_path):
     run_render(params, again)
     np.testing.assert_array_equal(read_png(cyc / "mask.png"), read_png(again / "mask.png"))
     assert np.abs(read_png(cyc / "image.png").astype(int) - read_png(again / "image.png").astype(int)).max() <= 2
+
+
+def test_the_blender_job_lies_beside_the_backend_and_no_host_module_imports_it():
+    import psdfactory
+    from psdfactory.scene.render import cycles
+
+    assert cycles.SCRIPT.is_file() and cycles.SCRIPT.parent == Path(cycles.__file__).parent
+    for f in Path(psdfactory.__file__).parent.rglob("*.py"):
+        imports = [line for line in f.read_text().splitlines() if line.lstrip().startswith(("import ", "from "))]
+        assert not any("blender_job" in line for line in imports), f
 
 
 def test_missing_blender_environment_says_how_to_create_it(monkeypatch, tmp_path):

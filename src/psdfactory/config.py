@@ -12,7 +12,7 @@ from pathlib import Path
 
 from . import PsdError
 
-SCHEMA = Path(__file__).with_name("config.schema.yaml")
+SCHEMA = Path(__file__).with_name("config.schema.yaml")  # package data; the workflow validates with it too
 DEFAULT_INPUT_SIZE = {"inception_v3": 299}  # network input px where not 224 (the design size)
 
 
