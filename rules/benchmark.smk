@@ -8,7 +8,7 @@ rule benchmark:
         f"{RESULTS}/bench/{{arch}}.json",
     params:
         stage=benchmark_params,
-        results=lambda wildcards, input: results_root(input.manifests[0], 4),
+        results=results_param,
     threads: all_cores
     log:
         f"{RESULTS}/bench/{{arch}}.log",

@@ -11,6 +11,7 @@ from snakemake.exceptions import WorkflowError
 
 from psdfactory import PsdError
 from psdfactory import config as psd_config
+from psdfactory.manifest import shard_name
 from psdfactory.scene.stages import SCENE_FILES, STAGES
 from psdfactory.seeding import scene_id, scene_index
 
@@ -26,7 +27,7 @@ except PsdError as e:
 if shutil.which("psdfactory") is None:
     shell.prefix(f"set -euo pipefail; export PATH={os.path.dirname(sys.executable)!r}:\"$PATH\"; ")
 
-RESULTS = config["results"].rstrip("/")
+RESULTS = config["results"].rstrip("/")  # every job that needs the results root gets it as --results
 DATASETS = list(config["datasets"])
 ARCHS = list(config["train"]["architectures"])
 
@@ -63,11 +64,12 @@ def log_path(stage):
     return f"{RESULTS}/{{dataset}}/logs/{stage}/{{scene}}.log"
 
 
-def results_root(path, depth):
-    """The results root above a file `depth` folders below it (for relative image paths)."""
-    for _ in range(depth):
-        path = os.path.dirname(path)
-    return path or "."
+def results_param(wildcards, output):
+    """The results root, for a job's --results. A location, not a setting: every output path
+    already starts with it, so the function takes `output` and Snakemake counts the param as
+    derived from the outputs and leaves it out of its params rerun trigger (a changed root
+    means other output paths anyway)."""
+    return RESULTS
 
 
 def as_json(obj):
@@ -123,6 +125,11 @@ def batch_stamp(stage):
     return f"{RESULTS}/{{dataset}}/batches/{stage}/batch-{{batch}}.json"
 
 
+def batch_stamp_of(dataset, stage, batch):
+    """The stamp of one batch (batch_stamp with its wildcards filled in)."""
+    return batch_stamp(stage).format(dataset=dataset, batch=f"{batch:05d}")
+
+
 def batch_log(stage):
     return f"{RESULTS}/{{dataset}}/logs/{stage}/batch-{{batch}}.log"
 
@@ -144,7 +151,7 @@ def shard_inputs(wildcards):
     job per scene), or the label stamps of the batches that hold them (scenes_per_job > 1)."""
     if BATCHED:
         batches = psd_config.shard_batches(config, wildcards.dataset, int(wildcards.shard))
-        return {"stamps": [f"{RESULTS}/{wildcards.dataset}/batches/label/batch-{b:05d}.json" for b in batches]}
+        return {"stamps": [batch_stamp_of(wildcards.dataset, "label", b) for b in batches]}
     dirs = shard_scene_dirs(wildcards)
     return {name: [f"{d}/{name}.{ext}" for d in dirs]
             for name, ext in (("labels", "json"), ("particles", "parquet"), ("image", "png"))}
@@ -152,7 +159,7 @@ def shard_inputs(wildcards):
 
 def shard_files(dataset, table):
     n = psd_config.n_shards(config, dataset)
-    return [f"{RESULTS}/{dataset}/manifest/{table}/shard-{k:05d}.parquet" for k in range(n)]
+    return [f"{RESULTS}/{dataset}/manifest/{table}/{shard_name(k)}" for k in range(n)]
 
 
 def dataset_shards(table):
@@ -187,7 +194,7 @@ def batches_to_repair(ds):
             gone = [f for f in st.outputs if not os.path.exists(f"{d}/{f}")]
             if gone:
                 batch = i // config["scenes_per_job"]
-                repair.setdefault(f"{RESULTS}/{ds}/batches/{stage}/batch-{batch:05d}.json", f"{d}/{gone[0]}")
+                repair.setdefault(batch_stamp_of(ds, stage, batch), f"{d}/{gone[0]}")
                 break
     return repair
 
@@ -216,10 +223,11 @@ def scene_targets():
 
 
 def compare_targets():
-    """The report's side-by-side renders of both backends (show.compare_backends scenes)."""
+    """The report's side-by-side renders of both backends (show.compare_backends scenes):
+    [compare.json, compare.png], the order `psdfactory report --compare` takes them in."""
     if config["show"]["compare_backends"] == 0:
         return []
-    return [f"{RESULTS}/report/backends/compare.png", f"{RESULTS}/report/backends/compare.json"]
+    return [f"{RESULTS}/report/backends/compare.json", f"{RESULTS}/report/backends/compare.png"]
 
 
 def all_targets():

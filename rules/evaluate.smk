@@ -20,7 +20,7 @@ rule evaluate:
         ),
     params:
         stage=evaluate_params,
-        results=lambda wildcards, input: results_root(input.manifests[0], 4),
+        results=results_param,
         out_dir=lambda wildcards, output: os.path.dirname(output.metrics),
     threads: all_cores
     log:

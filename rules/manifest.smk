@@ -6,7 +6,7 @@ rule manifest_shard:
         particles=f"{RESULTS}/{{dataset}}/manifest/particles/shard-{{shard}}.parquet",
     params:
         stage=manifest_params,
-        results=lambda wildcards, output: results_root(output.scenes, 4),
+        results=results_param,
         scene_dirs=lambda wildcards, input: shard_scene_dirs(wildcards),
     log:
         f"{RESULTS}/{{dataset}}/logs/manifest/shard-{{shard}}.log",
@@ -29,7 +29,7 @@ rule contact_sheet:
             subcategory="{dataset}",
         ),
     params:
-        results=lambda wildcards, output: results_root(output[0], 2),
+        results=results_param,
         n=config["show"]["n_scenes"],
     log:
         f"{RESULTS}/{{dataset}}/logs/contact_sheet.log",

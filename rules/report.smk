@@ -16,14 +16,16 @@ rule report:
         md=f"{RESULTS}/report/report.md",
     params:
         config=lambda wildcards: as_json(config),
-        results=lambda wildcards, output: results_root(output.html, 2),
+        compare=lambda wildcards, input: ["--compare", *input.backends] if input.backends else [],
     log:
         f"{RESULTS}/report/report.log",
     conda:
         "../envs/train.yaml"
     shell:
-        "psdfactory report --params {params.config:q} --results {params.results:q}"
-        " --html {output.html:q} --md {output.md:q} > {log:q} 2>&1"
+        "psdfactory report --params {params.config:q} --metrics {input.metrics:q} --scatters {input.scatter:q}"
+        " --histories {input.histories:q} --bench {input.bench:q} --manifests {input.manifests:q}"
+        " --contact-sheets {input.sheets:q} {params.compare:q} --html {output.html:q} --md {output.md:q}"
+        " > {log:q} 2>&1"
 
 
 rule compare_backends:
@@ -41,7 +43,7 @@ rule compare_backends:
         stage=lambda wildcards: as_json(psd_config.compare_params(config)),
         dataset=config["train"]["dataset"],
         n=config["show"]["compare_backends"],
-        results=lambda wildcards, output: results_root(output.figure, 3),
+        results=results_param,
         out_dir=lambda wildcards, output: os.path.dirname(output.figure),
     log:
         f"{RESULTS}/report/backends/compare.log",

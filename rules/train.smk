@@ -6,7 +6,7 @@ rule train:
         history=f"{RESULTS}/models/{{arch}}/history.csv",
     params:
         stage=train_params,
-        results=lambda wildcards, input: results_root(input.manifests[0], 4),
+        results=results_param,
         out_dir=lambda wildcards, output: os.path.dirname(output.model),
     threads: all_cores
     log:

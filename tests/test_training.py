@@ -125,7 +125,7 @@ def test_evaluate_benchmark_report(dataset, trained, tmp_path):
     from psdfactory.deploy.benchmark import benchmark
     from psdfactory.learn.evaluate import evaluate, plot_history
     from psdfactory.io import write_json
-    from psdfactory.report import build_report
+    from psdfactory.report import ReportInputs, build_report
 
     model_dir, _ = trained
     root = tmp_path / "res"
@@ -158,7 +158,12 @@ def test_evaluate_benchmark_report(dataset, trained, tmp_path):
     cfg["train"]["architectures"] = ["resnet18"]
     html, md = root / "report" / "report.html", root / "report" / "report.md"
     (root / "tiny" / "contact_sheet.png").write_bytes((ev / "scatter.png").read_bytes())
-    build_report(root, cfg, root / "models", root / "eval", root / "bench", html, md)
+    inputs = ReportInputs(metrics={"resnet18": ev / "metrics.json"}, scatters={"resnet18": ev / "scatter.png"},
+                          histories={"resnet18": root / "models" / "resnet18" / "history.csv"},
+                          bench={"resnet18": root / "bench" / "resnet18.json"},
+                          manifests=[root / "tiny" / "manifest" / "scenes" / "shard-00000.parquet"],
+                          contact_sheets={"tiny": root / "tiny" / "contact_sheet.png"})
+    build_report(cfg, inputs, html, md)
     text = html.read_text()
     assert "data:image/png;base64," in text and "R² overall" in text and "resnet18" in text
     assert "Warning:" not in text  # pretrained: none is no fallback to warn about

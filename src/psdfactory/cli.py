@@ -88,11 +88,12 @@ def cmd_benchmark(a: argparse.Namespace) -> None:
 
 
 def cmd_report(a: argparse.Namespace) -> None:
-    from .report import build_report
+    from .report import ReportInputs, build_report
 
     cfg = json.loads(Path(a.config_json).read_text()) if a.config_json else _params(a.params)
-    r = Path(a.results)
-    build_report(r, cfg, r / "models", r / "eval", r / "bench", Path(a.html), Path(a.md))
+    inputs = ReportInputs.from_lists(cfg, a.metrics, a.scatters, a.histories, a.bench, a.manifests,
+                                     a.contact_sheets, a.compare)
+    build_report(cfg, inputs, Path(a.html), Path(a.md))
     print(f"wrote {a.html} and {a.md}")
 
 
@@ -191,7 +192,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("report", help="the final HTML report and its Markdown twin")
     p.add_argument("--params", default="{}", help="the validated config as JSON")
     p.add_argument("--config-json", help="or: a file holding it")
-    p.add_argument("--results", required=True)
+    each = "one per architecture, in the order of train.architectures"
+    p.add_argument("--metrics", nargs="+", required=True, metavar="JSON", help=f"eval/<arch>/metrics.json, {each}")
+    p.add_argument("--scatters", nargs="+", required=True, metavar="PNG", help=f"eval/<arch>/scatter.png, {each}")
+    p.add_argument("--histories", nargs="+", required=True, metavar="CSV", help=f"models/<arch>/history.csv, {each}")
+    p.add_argument("--bench", nargs="+", required=True, metavar="JSON", help=f"bench/<arch>.json, {each}")
+    p.add_argument("--manifests", nargs="+", required=True, metavar="PARQUET",
+                   help="the scene manifest shards of every dataset")
+    p.add_argument("--contact-sheets", nargs="*", default=[], metavar="PNG",
+                   help="<dataset>/contact_sheet.png, one per dataset in the config's order (or none)")
+    p.add_argument("--compare", nargs=2, metavar=("JSON", "PNG"),
+                   help="the backend comparison's compare.json and compare.png")
     p.add_argument("--html", required=True)
     p.add_argument("--md", required=True)
     p.set_defaults(func=cmd_report)

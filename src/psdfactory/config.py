@@ -181,10 +181,6 @@ def shard_indices(config: dict, dataset: str, shard: int) -> range:
     return range(lo, min(lo + ds["shard_size"], ds["n_scenes"]))
 
 
-def n_batches(config: dict, dataset: str) -> int:
-    return -(-config["datasets"][dataset]["n_scenes"] // config["scenes_per_job"])
-
-
 def batch_indices(config: dict, dataset: str, batch: int) -> range:
     n = config["scenes_per_job"]
     return range(batch * n, min((batch + 1) * n, config["datasets"][dataset]["n_scenes"]))

@@ -109,6 +109,13 @@ def write_shard(scene_dirs: list[Path], results_root: Path, fractions: dict[str,
     return scenes
 
 
+def read_shards(paths: list[Path]) -> pa.Table:
+    """The scene tables of these shard files (of any datasets) as one table."""
+    if not paths:
+        raise PsdError("no manifest shards given")
+    return pa.concat_tables([read_parquet(p) for p in paths])
+
+
 def read_scenes(results_root: Path, dataset: str) -> pa.Table:
     path = Path(results_root) / dataset / "manifest" / "scenes"
     if not path.is_dir() or not any(path.glob("*.parquet")):

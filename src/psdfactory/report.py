@@ -5,23 +5,64 @@ from __future__ import annotations
 import base64
 import datetime as dt
 import html
-import json
 import shutil
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from . import __version__
-from .io import atomic_path, pyplot, save_figure
-from .manifest import read_scenes
+from . import PsdError, __version__
+from .io import atomic_path, pyplot, read_json, save_figure
 from .learn.metrics import NAMES
+from .manifest import read_shards
 
 
-def label_histograms(results_root: Path, datasets: list[str], out: Path) -> None:
+@dataclass(frozen=True)
+class ReportInputs:
+    """Every file the report reads, as the workflow names them: nothing is found by walking folders."""
+
+    metrics: dict[str, Path]  # architecture → eval/<arch>/metrics.json
+    scatters: dict[str, Path]  # architecture → eval/<arch>/scatter.png
+    histories: dict[str, Path]  # architecture → models/<arch>/history.csv
+    bench: dict[str, Path]  # architecture → bench/<arch>.json
+    manifests: list[Path]  # the scene shards of every dataset
+    contact_sheets: dict[str, Path] = field(default_factory=dict)  # dataset → <dataset>/contact_sheet.png
+    compare: tuple[Path, Path] | None = None  # the backend comparison: (compare.json, compare.png)
+
+    @classmethod
+    def from_lists(cls, config: dict, metrics: list, scatters: list, histories: list, bench: list, manifests: list,
+                   contact_sheets: list | None = None, compare: list | None = None) -> "ReportInputs":
+        """Per-architecture lists in the order of ``train.architectures``, contact sheets in the
+        order of ``datasets`` (the order of the report rule's ``expand()``)."""
+        archs, datasets = list(config["train"]["architectures"]), list(config["datasets"])
+
+        def keyed(what: str, files: list, keys: list[str]) -> dict[str, Path]:
+            if len(files) != len(keys):
+                raise PsdError(f"{what}: {len(files)} files for {len(keys)} entries ({', '.join(keys)})")
+            return dict(zip(keys, map(Path, files)))
+
+        return cls(keyed("metrics", metrics, archs), keyed("scatters", scatters, archs),
+                   keyed("histories", histories, archs), keyed("bench", bench, archs), [Path(m) for m in manifests],
+                   keyed("contact sheets", contact_sheets, datasets) if contact_sheets else {},
+                   (Path(compare[0]), Path(compare[1])) if compare else None)
+
+
+def dataset_tables(manifests: list[Path], datasets: list[str]) -> dict:
+    """Each dataset's scene table, from the given shards."""
+    scenes = read_shards(manifests)
+    names = np.asarray(scenes.column("dataset").to_pylist(), dtype=object)
+    out = {}
+    for ds in datasets:
+        out[ds] = scenes.filter(names == ds)
+        if out[ds].num_rows == 0:
+            raise PsdError(f"the manifest shards given hold no scene of dataset {ds!r}")
+    return out
+
+
+def label_histograms(tables: dict, out: Path) -> None:
     plt = pyplot()
     fig, axes = plt.subplots(2, 3, figsize=(11, 5.5))
-    for ds in datasets:
-        t = read_scenes(results_root, ds)
+    for ds, t in tables.items():
         for row, suffix, kind in ((0, "_mm", "number-weighted"), (1, "_v_mm", "volume-weighted")):
             for j, n in enumerate(NAMES):
                 ax = axes[row, j]
@@ -94,34 +135,35 @@ def _img_tag(path: Path, alt: str) -> str:
     return f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{data}"><figcaption>{html.escape(alt)}</figcaption></figure>'
 
 
-def build_report(results_root: Path, config: dict, models_dir: Path, eval_dir: Path, bench_dir: Path,
-                 out_html: Path, out_md: Path) -> None:
+def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Path) -> None:
     import yaml
 
     datasets = list(config["datasets"])
     archs = list(config["train"]["architectures"])
     fig_dir = out_md.parent / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
-    metrics = {a: json.loads((eval_dir / a / "metrics.json").read_text()) for a in archs}
-    bench = {a: json.loads((bench_dir / f"{a}.json").read_text()) for a in archs}
-    histories = {a: models_dir / a / "history.csv" for a in archs}
+    metrics = {a: read_json(inputs.metrics[a]) for a in archs}
+    bench = {a: read_json(inputs.bench[a]) for a in archs}
+    for a in archs:
+        for what, files, got in (("metrics", inputs.metrics, metrics[a]), ("bench", inputs.bench, bench[a])):
+            if got.get("arch") != a:
+                raise PsdError(f"{files[a]} holds the {what} of {got.get('arch')!r}, not of {a!r}")
+    histories = inputs.histories
+    tables = dataset_tables(inputs.manifests, datasets)
 
     figures: list[tuple[Path, str]] = []
     hist_png = fig_dir / "label_histograms.png"
-    label_histograms(results_root, datasets, hist_png)
+    label_histograms(tables, hist_png)
     figures.append((hist_png, "Label distributions per dataset"))
-    for ds in datasets:
-        sheet = results_root / ds / "contact_sheet.png"
-        if sheet.is_file():
-            dst = fig_dir / f"contact_sheet_{ds}.png"
-            shutil.copyfile(sheet, dst)
-            figures.append((dst, f"Contact sheet: {ds}"))
+    for ds, sheet in inputs.contact_sheets.items():
+        dst = fig_dir / f"contact_sheet_{ds}.png"
+        shutil.copyfile(sheet, dst)
+        figures.append((dst, f"Contact sheet: {ds}"))
     compare_head, compare_rows = [], []
-    compare = results_root / "report" / "backends" / "compare.json"
-    if compare.is_file():
-        summary = json.loads(compare.read_text())
+    if inputs.compare is not None:
+        summary = read_json(inputs.compare[0])
         dst = fig_dir / "compare_backends.png"
-        shutil.copyfile(compare.with_suffix(".png"), dst)
+        shutil.copyfile(inputs.compare[1], dst)
         figures.append((dst, "The same scenes rendered by TinyRenderer and Blender Cycles"))
         compare_head = ["scene", "particles", "tiny (s)", "cycles (s)", "masks agree", "agree off edges"]
         compare_rows = [[r["scene_id"], str(r["n_particles"]), f"{r['seconds_tiny']:.1f}", f"{r['seconds_cycles']:.1f}",
@@ -134,14 +176,13 @@ def build_report(results_root: Path, config: dict, models_dir: Path, eval_dir: P
         curve = fig_dir / f"loss_{a}.png"
         plot_history(histories[a], a, curve)
         scatter = fig_dir / f"scatter_{a}.png"
-        shutil.copyfile(eval_dir / a / "scatter.png", scatter)
+        shutil.copyfile(inputs.scatters[a], scatter)
         plot_figs += [(scatter, f"{a}: predicted vs true"), (curve, f"{a}: training and validation loss")]
 
     # dataset summary
     count_head = ["dataset", "scenes", "train", "val", "test", "particles / scene", "mm / px", "shape"]
     count_rows = []
-    for ds in datasets:
-        t = read_scenes(results_root, ds)
+    for ds, t in tables.items():
         splits = t.column("split").to_pylist()
         n = np.asarray(t.column("n_particles"))
         count_rows.append([ds, str(t.num_rows), *(str(splits.count(s)) for s in ("train", "val", "test")),
