@@ -9,33 +9,37 @@ import pytest
 from psdfactory import config as psd_config
 from psdfactory.cli import main
 
-pytestmark = pytest.mark.slow
-
-
 def _label_args(cfg, d):
     return ["label", "--params", json.dumps(psd_config.label_params(cfg)), str(d)]
 
 
+def _files(d: Path) -> dict[str, bytes]:
+    return {p.relative_to(d).as_posix(): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.slow
 def test_corrupt_mask_gives_clear_error(tiny_results, tmp_path, capsys):
     cfg, root = tiny_results
-    d = tmp_path / "scene"
+    d = tmp_path / "tiny-000000"
     shutil.copytree(root / "tiny" / "scenes" / "tiny-000000", d)
     (d / "mask.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    before = _files(d)
     assert main(_label_args(cfg, d)) == 2
     err = capsys.readouterr().err
     assert "mask.png is not a readable image" in err and "Traceback" not in err
-    assert not (d / "labels.json.tmp").exists()
+    assert _files(d) == before  # the old labels untouched, no temporary file left behind
 
 
+@pytest.mark.slow
 def test_missing_input_gives_clear_error(tiny_results, tmp_path, capsys):
     cfg, root = tiny_results
-    d = tmp_path / "scene"
+    d = tmp_path / "tiny-000000"
     shutil.copytree(root / "tiny" / "scenes" / "tiny-000000", d)
     (d / "poses.parquet").unlink()
     (d / "labels.json").unlink()
     assert main(_label_args(cfg, d)) == 2
     err = capsys.readouterr().err
-    assert "missing poses.parquet" in err and "scene" in err and not (d / "labels.json").exists()
+    assert f"{d}: missing poses.parquet" in err and not (d / "labels.json").exists()  # names the scene folder
 
 
 def test_bad_params_json(tmp_path, capsys):
@@ -54,6 +58,7 @@ def test_cli_entry_point_runs_without_torch():
     assert r.returncode == 0 and "psdfactory" in r.stdout
 
 
+@pytest.mark.slow
 def test_show_contact_sheet(tiny_results, tmp_path):
     from psdfactory.manifest import write_shard
     from psdfactory.scene.show import contact_sheet

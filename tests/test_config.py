@@ -1,7 +1,3 @@
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
 import yaml
 
@@ -10,6 +6,7 @@ from psdfactory import config as psd_config
 from psdfactory.config import load_config
 
 from .conftest import REPO, tiny_config
+from .workflow_helpers import snakemake, write_config
 
 
 def test_default_and_paper_configs_are_valid():
@@ -86,11 +83,10 @@ def test_shards():
 def test_snakemake_refuses_bad_config_before_any_job(tmp_path):
     cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
     cfg["datasets"]["train"]["size"]["sigma"] = [8, 6]
-    cfg["results"] = str(tmp_path / "results")
-    path = tmp_path / "broken.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    snakemake = Path(sys.executable).with_name("snakemake")
-    r = subprocess.run([str(snakemake), "-n", "--configfile", str(path)], cwd=REPO, capture_output=True, text=True)
+    cfg["results"] = "results"
+    path = write_config(tmp_path / "broken.yaml", cfg)
+    # a real run (not -n) of one sample job: had the config passed, its folder would exist
+    r = snakemake("-j1", "results/train/scenes/train-000000/spec.json", "--configfile", str(path), workdir=tmp_path)
     assert r.returncode != 0
     out = r.stdout + r.stderr
     assert "datasets.train.size.sigma" in out and "lo <= hi" in out

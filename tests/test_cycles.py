@@ -18,13 +18,12 @@ from psdfactory.scene.render.cycles import DEFAULT_PYTHON, blender_python
 from psdfactory.io import read_json, read_png
 from psdfactory.scene.stages import run_render
 
-pytestmark = pytest.mark.slow
-
 HAVE_BLENDER = bool(os.environ.get("PSD_BLENDER_PYTHON")) or DEFAULT_PYTHON.is_file()
 needs_blender = pytest.mark.skipif(
     not HAVE_BLENDER and not os.environ.get("PSD_REQUIRE_BLENDER"),
     reason="no Blender environment (`make blender`); `make test` creates it and requires these tests",
 )
+slow = pytest.mark.slow
 
 
 def cycles_config(cfg: dict, **cycles) -> dict:
@@ -45,6 +44,7 @@ def both(tiny_results, tmp_path_factory):
     return src, dst
 
 
+@slow
 @needs_blender
 def test_cycles_writes_the_same_outputs_with_the_same_geometry(both):
     tiny, cyc = both
@@ -60,6 +60,7 @@ def test_cycles_writes_the_same_outputs_with_the_same_geometry(both):
     assert abs(float(img[mask > 0].mean()) - float(img[mask == 0].mean())) > 3
 
 
+@slow
 @needs_blender
 def test_cycles_mask_ids_are_particle_ids_and_match_the_fast_backend(both):
     tiny, cyc = both
@@ -74,6 +75,7 @@ def test_cycles_mask_ids_are_particle_ids_and_match_the_fast_backend(both):
     assert (a == b).mean() > 0.9
 
 
+@slow
 @needs_blender
 def test_cycles_is_deterministic(both, tmp_path):
     _, cyc = both
@@ -102,6 +104,7 @@ def test_missing_blender_environment_says_how_to_create_it(monkeypatch, tmp_path
         blender_python()
 
 
+@slow
 def test_blender_failure_is_reported_with_its_output(monkeypatch, tiny_results, tmp_path):
     cfg, root = tiny_results
     fake = tmp_path / "python"
@@ -131,6 +134,7 @@ def test_cycles_settings_do_not_rerun_the_fast_backend():
     assert psd_config.render_params(c)["cycles"]["samples"] == 64
 
 
+@slow
 @needs_blender
 def test_a_batch_of_cycles_renders_runs_one_scene_at_a_time(tiny_results, tmp_path, capsys):
     from psdfactory.scene.stages import run_scenes

@@ -7,9 +7,7 @@ from psdfactory.scene.render.look import RenderParams
 from psdfactory.scene.render.tiny import downsample, shade_from_height
 from psdfactory.scene.stages import load_poses
 
-pytestmark = pytest.mark.slow
-
-
+@pytest.mark.slow
 def test_image_and_mask_files(tiny_results):
     cfg, root = tiny_results
     d = root / "tiny" / "scenes" / "tiny-000000"
@@ -22,6 +20,7 @@ def test_image_and_mask_files(tiny_results):
     assert img[mask > 0].mean() != pytest.approx(img[mask == 0].mean(), abs=3)
 
 
+@pytest.mark.slow
 def test_mask_ids_are_particle_ids_at_their_positions(tiny_results):
     _, root = tiny_results
     d = root / "tiny" / "scenes" / "tiny-000001"
@@ -46,6 +45,7 @@ def test_mask_ids_are_particle_ids_at_their_positions(tiny_results):
     assert checked >= 5
 
 
+@pytest.mark.slow
 def test_render_is_deterministic(tiny_results, tmp_path):
     import shutil
 

@@ -14,9 +14,6 @@ from psdfactory.scene.stages import record_path, run_scenes, up_to_date
 
 from .conftest import tiny_config
 
-pytestmark = pytest.mark.slow
-
-
 @pytest.fixture()
 def sampled(tmp_path):
     cfg = tiny_config(count=[10, 14])
@@ -25,6 +22,7 @@ def sampled(tmp_path):
     return cfg, dirs
 
 
+@pytest.mark.slow
 def test_sample_takes_the_index_from_the_folder_and_records_its_params(sampled):
     cfg, dirs = sampled
     for i, d in enumerate(dirs):
@@ -33,6 +31,7 @@ def test_sample_takes_the_index_from_the_folder_and_records_its_params(sampled):
         assert up_to_date("sample", psd_config.sample_params(cfg, "tiny", i), d)
 
 
+@pytest.mark.slow
 def test_up_to_date_follows_outputs_inputs_and_params(sampled):
     cfg, dirs = sampled
     params = psd_config.simulate_params(cfg)
@@ -49,6 +48,7 @@ def test_up_to_date_follows_outputs_inputs_and_params(sampled):
     assert sorted(run_scenes("simulate", params, dirs, skip_up_to_date=True)["ran"]) == [dirs[1].name, dirs[2].name]
 
 
+@pytest.mark.slow
 def test_a_failing_scene_names_itself_keeps_the_others_and_writes_no_stamp(sampled, tmp_path):
     cfg, dirs = sampled
     (dirs[1] / "spec.json").write_text("{ not json")

@@ -15,8 +15,6 @@ from psdfactory.manifest import write_shard
 
 from .conftest import make_scene, tiny_config
 
-pytestmark = pytest.mark.slow
-
 SPLITS = ["train"] * 6 + ["val"] * 2 + ["test"] * 2
 
 
@@ -54,6 +52,7 @@ def trained(dataset, tmp_path_factory):
     return out, summary
 
 
+@pytest.mark.slow
 def test_training_lowers_loss_and_writes_outputs(trained):
     import csv
 
@@ -68,6 +67,7 @@ def test_training_lowers_loss_and_writes_outputs(trained):
     assert summary["best_epoch"] == 1 + int(np.argmin([float(r["val_loss"]) for r in rows]))
 
 
+@pytest.mark.slow
 def test_resume_after_interruption_matches_uninterrupted(dataset, trained, tmp_path, monkeypatch):
     import csv
 
@@ -96,6 +96,7 @@ def test_resume_after_interruption_matches_uninterrupted(dataset, trained, tmp_p
     np.testing.assert_allclose(resumed, straight, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_other_settings_do_not_resume(dataset, trained, tmp_path):
     from psdfactory.learn.train import train
 
@@ -106,6 +107,7 @@ def test_other_settings_do_not_resume(dataset, trained, tmp_path):
     assert any("ignoring" in m for m in logs) and not any("resuming" in m for m in logs)
 
 
+@pytest.mark.slow
 def test_needs_train_and_val(dataset, tmp_path):
     from psdfactory.learn.train import train
 
@@ -121,6 +123,7 @@ def test_needs_train_and_val(dataset, tmp_path):
         train(params(), root, tmp_path / "m", log=lambda m: None)
 
 
+@pytest.mark.slow
 def test_evaluate_benchmark_report(dataset, trained, tmp_path):
     from psdfactory.deploy.benchmark import benchmark
     from psdfactory.learn.evaluate import evaluate, plot_history
@@ -139,6 +142,11 @@ def test_evaluate_benchmark_report(dataset, trained, tmp_path):
     preds = (ev / "predictions.csv").read_text().splitlines()
     assert len(preds) == 3 and "pred_d50_mm" in preds[0]
     plot_history(root / "models" / "resnet18" / "history.csv", "resnet18", ev / "loss_curve.png")
+    from PIL import Image
+
+    with Image.open(ev / "loss_curve.png") as im:  # a 5 × 3.5 in figure at 100 dpi
+        assert im.format == "PNG" and im.size == (500, 350)
+        assert len(set(im.convert("L").getdata())) > 2  # curves, axes and labels: not a blank canvas
 
     b = benchmark(root / "models" / "resnet18" / "model.pt", root, "tiny", batch=2, seconds=0.05, repeats=2, log=lambda m: None)
     r = b["results"][0]
@@ -170,6 +178,7 @@ def test_evaluate_benchmark_report(dataset, trained, tmp_path):
     assert "| resnet18 |" in md.read_text()
 
 
+@pytest.mark.slow
 def test_predict_good_and_bad_files(dataset, trained, tmp_path, capsys):
     from psdfactory.cli import main
 
@@ -206,6 +215,7 @@ def test_prepare_rescales_to_the_model_scale():
     assert prepare(img, meta, mm_per_px=None).shape == (1, 3, 128, 128)
 
 
+@pytest.mark.slow
 def test_export_matches_pytorch(trained, tmp_path):
     from psdfactory.deploy.export import export
 
@@ -217,6 +227,7 @@ def test_export_matches_pytorch(trained, tmp_path):
     assert out.shape == (3, 3)
 
 
+@pytest.mark.slow
 def test_int8_export_is_checked_and_predicts_like_pytorch(dataset, trained, tmp_path):
     from psdfactory.deploy.export import export
     from psdfactory.deploy.predict import predict_files

@@ -8,7 +8,7 @@ import pytest
 
 from psdfactory.scene.render.cycles import DEFAULT_PYTHON
 
-from .workflow_helpers import snakemake, write_config
+from .workflow_helpers import REPO, snakemake, write_config
 
 # the report's side-by-side of both render backends needs Blender (`make test` installs it)
 COMPARE = 2 if DEFAULT_PYTHON.is_file() or os.environ.get("PSD_BLENDER_PYTHON") or os.environ.get("PSD_REQUIRE_BLENDER") else 0
@@ -71,6 +71,6 @@ def test_tiny_workflow_end_to_end(tmp_path):
     assert r.returncode == 0 and "Nothing to be done" in r.stdout + r.stderr
 
 
-def test_lint_is_clean():
-    r = snakemake("--lint")
+def test_lint_is_clean(tmp_path):
+    r = snakemake("--lint", "--configfile", str(REPO / "config" / "config.yaml"), workdir=tmp_path)
     assert r.returncode == 0, r.stdout + r.stderr

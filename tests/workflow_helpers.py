@@ -1,9 +1,11 @@
 """Running Snakemake on the repository's workflow from a test: each test run gets its own
-working directory (so its .snakemake metadata and locks are its own)."""
+working directory (so its .snakemake metadata and locks are its own, and none is left in the
+repository)."""
 
 from __future__ import annotations
 
 import re
+import shutil
 import subprocess
 import sys
 from collections import Counter
@@ -14,12 +16,18 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 
 
-def snakemake(*args: str, workdir: Path | None = None, env: dict | None = None) -> subprocess.CompletedProcess:
+def snakemake(*args: str, workdir: Path, env: dict | None = None) -> subprocess.CompletedProcess:
     exe = Path(sys.executable).with_name("snakemake")
-    cmd = [str(exe), "-s", str(REPO / "Snakefile")]
-    if workdir is not None:
-        cmd += ["-d", str(workdir)]
-    return subprocess.run(cmd + list(args), cwd=workdir or REPO, capture_output=True, text=True, env=env)
+    cmd = [str(exe), "-s", str(REPO / "Snakefile"), "-d", str(workdir)]
+    return subprocess.run(cmd + list(args), cwd=workdir, capture_output=True, text=True, env=env)
+
+
+def own_copy(work: Path, dest: Path) -> Path:
+    """A copy of a built working directory (results, .snakemake metadata, modification times) for
+    a test that changes it, so that the tests sharing the original stay independent of order.
+    The configs give the results root relative to the working directory, so the copy is whole."""
+    shutil.copytree(work, dest, symlinks=True)
+    return dest
 
 
 def write_config(path: Path, cfg: dict) -> Path:
