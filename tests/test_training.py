@@ -153,12 +153,14 @@ def test_evaluate_benchmark_report(dataset, trained, tmp_path):
     assert r["paths"]["fp32"]["batch1"]["images_per_s"] > 0 and r["paths"]["fast"]["batched"]["batch"] == 2
     assert r["params_m"] == pytest.approx(11.18, abs=0.05) and r["gflops"] > 0
     assert abs(b["r2_change"]) < 0.05
-    from psdfactory.deploy.quantize import int8_available
+    from psdfactory.learn.capability import detect
 
-    if int8_available():  # this CPU has VNNI: the int8 ONNX Runtime path is measured too
+    if detect().onnxruntime:  # ONNX Runtime fp32 and int8 are timed on any CPU
         int8 = r["paths"]["int8"]
         assert int8["batched"]["images_per_s"] > 0 and int8["calibration_images"] > 0
         assert abs(int8["accuracy"]["overall"]["r2"] - r["paths"]["fp32"]["accuracy"]["overall"]["r2"]) < 0.1
+        assert r["paths"]["ort_fp32"]["accuracy"]["overall"]["r2"] == pytest.approx(
+            r["paths"]["fp32"]["accuracy"]["overall"]["r2"], abs=1e-4)
     assert r["paths"]["fast"]["name"] == r["paths"][r["fast_key"]]["name"]
     write_json(root / "bench" / "resnet18.json", b)
 
@@ -283,5 +285,91 @@ def test_fast_path_is_the_fastest_within_the_accuracy_budget():
     assert choose_fast(paths) == "bf16"
     paths["int8"]["r2_change"] = +0.02  # "better" by this much is as different: refused too
     assert choose_fast(paths) == "bf16"
-    paths["bf16"]["r2_change"] = -0.01  # nothing in budget: the first candidate, to show the change
+    paths["bf16"]["r2_change"] = -0.01  # nothing faster in budget: fp32 itself
+    assert choose_fast(paths) == "fp32"
+    paths["bf16"]["r2_change"] = None  # measured without a dataset: speed alone decides
     assert choose_fast(paths) == "bf16"
+    assert choose_fast({"fp32": path(10, 0.0)}) == "fp32"  # a CPU with no other candidate
+
+
+# -- every capability combination (issue: no crash on a CPU without bf16/VNNI, or without ONNX Runtime) --
+
+COMBINATIONS = {  # name → (native bf16, int8 dot products, onnxruntime installed)
+    "neither": (False, False, True),
+    "bf16_only": (True, False, True),
+    "vnni_only": (False, True, True),
+    "both": (True, True, True),
+    "no_onnxruntime": (False, False, False),
+}
+
+
+@pytest.fixture(params=list(COMBINATIONS))
+def capabilities(request, monkeypatch):
+    """This machine as it would look with the given features (the detection patched)."""
+    from psdfactory.learn import capability
+
+    bf16, vnni, ort = COMBINATIONS[request.param]
+    real = capability.detect()
+    caps = capability.Capabilities(
+        machine="x86_64", cpu_model=f"test CPU ({request.param})", flags=("avx2", "fma"),
+        torch_isa="AVX512" if bf16 else "AVX2", forced_isa="", native_bf16=bf16, int8_dot=vnni,
+        onnxruntime=ort and real.onnxruntime)
+    monkeypatch.setattr(capability, "detect", lambda: caps)
+    if not ort:
+        monkeypatch.setattr(capability, "onnxruntime_available", lambda: False)
+    return caps
+
+
+@pytest.mark.slow
+def test_benchmark_report_and_predict_in_every_capability_combination(dataset, trained, capabilities, tmp_path):
+    from psdfactory.deploy.benchmark import benchmark
+    from psdfactory.cli import main
+    from psdfactory.learn.evaluate import evaluate
+    from psdfactory.io import write_json
+    from psdfactory.report import ReportInputs, build_report
+    from psdfactory.learn.runtime import pick_precision
+
+    root = tmp_path / "res"
+    shutil.copytree(dataset, root)
+    shutil.copytree(trained[0], root / "models" / "resnet18")
+    model = root / "models" / "resnet18" / "model.pt"
+    evaluate(model, root, ["tiny"], root / "eval" / "resnet18", log=lambda m: None)
+    b = benchmark(model, root, "tiny", batch=2, seconds=0.02, repeats=1, log=lambda m: None)
+    r = b["results"][0]
+    measured = {k for k in r["paths"] if k != "fast"}
+    expected = {"fp32", "channels_last"} | ({"bf16"} if capabilities.native_bf16 else set()) | (
+        {"ort_fp32", "int8"} if capabilities.onnxruntime else set())
+    assert measured == expected
+    assert set(r["skipped"]) == {"bf16", "ort_fp32", "int8"} - expected
+    assert r["fast_key"] in measured and abs(r["paths"]["fast"]["r2_change"]) <= r["max_r2_change"]
+    assert b["cpu"]["cpu_model"] == capabilities.cpu_model
+    assert pick_precision("auto", torch.device("cpu")) == ("bf16" if capabilities.native_bf16 else "fp32")
+    write_json(root / "bench" / "resnet18.json", b)
+
+    cfg = tiny_config()
+    cfg["train"]["architectures"] = ["resnet18"]
+    html, md = root / "report" / "report.html", root / "report" / "report.md"
+    ev = root / "eval" / "resnet18"
+    inputs = ReportInputs(metrics={"resnet18": ev / "metrics.json"}, scatters={"resnet18": ev / "scatter.png"},
+                          histories={"resnet18": root / "models" / "resnet18" / "history.csv"},
+                          bench={"resnet18": root / "bench" / "resnet18.json"},
+                          manifests=[root / "tiny" / "manifest" / "scenes" / "shard-00000.parquet"])
+    build_report(cfg, inputs, html, md)
+    text = md.read_text()
+    assert capabilities.cpu_model in text
+    for key in measured:  # every measured path has a row; the chosen one is starred
+        name = r["paths"][key]["name"]
+        assert f"| {name}{' ★' if key == r['fast_key'] else ''} |" in text, name
+
+    img = dataset / "tiny" / "scenes" / "tiny-000008" / "image.png"
+    out = tmp_path / "p.csv"
+    assert main(["predict", "--model", str(model), "--out", str(out), str(img)]) == 0
+    assert float(out.read_text().splitlines()[1].split(",")[2]) > 0
+    if not capabilities.onnxruntime:  # an ONNX model cannot run: said clearly, no traceback
+        onnx = tmp_path / "model.onnx"
+        onnx.write_bytes(b"x")
+        assert main(["predict", "--model", str(onnx), str(img)]) == 2
+        with pytest.raises(PsdError, match="needs ONNX Runtime.*pip install onnxruntime"):
+            from psdfactory.deploy.export import export
+
+            export(model, tmp_path / "exp", log=lambda m: None)

@@ -15,13 +15,16 @@ from ..learn.models import main_output
 
 
 def export(model_path: Path, out_dir: Path, log=print, int8_results: Path | None = None, dataset: str = "train",
-           max_r2_change: float = 0.005) -> dict:
+           max_r2_change: float | None = None) -> dict:
     """ONNX and TorchScript copies of a model, each checked against the PyTorch output; with
     `int8_results` (a results root) also ``model.int8.onnx``, calibrated on the dataset's
     training images and refused if its overall R² on the test split moves more than
-    `max_r2_change` from the fp32 model's."""
+    `max_r2_change` (default ``quantize.MAX_R2_CHANGE``) from the fp32 model's."""
     from ..learn.runtime import load_model
+    from .quantize import MAX_R2_CHANGE, require_onnxruntime
 
+    require_onnxruntime("export (it checks the ONNX model against PyTorch)")
+    max_r2_change = MAX_R2_CHANGE if max_r2_change is None else max_r2_change
     model, meta = load_model(model_path, "cpu")
     model = model.float().eval()
     size = meta["input_size"]
@@ -68,32 +71,27 @@ def export(model_path: Path, out_dir: Path, log=print, int8_results: Path | None
 
 def export_int8(model, meta: dict, fp32_onnx: Path, out: Path, results_root: Path, dataset: str,
                 max_r2_change: float, log=print) -> dict:
-    from ..learn.data import manifest_rows, normalised_images
+    from ..learn.data import normalised_images
     from ..learn.evaluate import eval_rows
     from ..learn.metrics import regression_metrics
-    from .quantize import OrtModel, int8_available, quantize_int8
+    from .quantize import OrtModel, calibration_images, quantize_int8
 
-    if not int8_available():
-        log("note: this CPU has no VNNI/AMX-INT8; the int8 model will be correct but not faster here")
     size = meta["input_size"]
-    calib_rows = manifest_rows(results_root, dataset, ("train",))[:64]
-    if not calib_rows:
-        raise PsdError(f"dataset {dataset!r} under {results_root} has no training scenes to calibrate int8 on")
-    calib = normalised_images(results_root, calib_rows, size)[0].numpy()
+    calib = calibration_images(results_root, dataset, size)
     tmp_out = out.with_name(".candidate." + out.name)
     quantize_int8(fp32_onnx, tmp_out, calib)
     x, y = normalised_images(results_root, eval_rows(results_root, dataset), size)
     ort = OrtModel(tmp_out, torch.get_num_threads())
     with torch.inference_mode():
         p32 = main_output(model(x)).numpy()
-    p8 = np.concatenate([ort(x[i : i + 32].numpy()) for i in range(0, len(x), 32)])
+    p8 = ort.predict(x.numpy())
     r2_32, r2_8 = regression_metrics(y, p32)["overall"]["r2"], regression_metrics(y, p8)["overall"]["r2"]
-    info = {"path": str(out), "calibration_images": len(calib_rows), "test_scenes": len(y), "r2_fp32": r2_32,
+    info = {"path": str(out), "calibration_images": len(calib), "test_scenes": len(y), "r2_fp32": r2_32,
             "r2_int8": r2_8, "r2_change": r2_8 - r2_32, "max_abs_diff_mm": float(np.abs(p8 - p32).max())}
     if abs(r2_8 - r2_32) > max_r2_change:
         tmp_out.unlink()
         raise PsdError(f"int8 model refused: overall R² {r2_8:.4f} vs fp32 {r2_32:.4f} on {len(y)} test scenes "
                        f"(change {r2_8 - r2_32:+.4f}, allowed ±{max_r2_change}); use the fp32 model.onnx")
     tmp_out.replace(out)
-    log(f"int8: {out} (R² {r2_32:.4f} → {r2_8:.4f} on {len(y)} test scenes; calibrated on {len(calib_rows)} images)")
+    log(f"int8: {out} (R² {r2_32:.4f} → {r2_8:.4f} on {len(y)} test scenes; calibrated on {len(calib)} images)")
     return info

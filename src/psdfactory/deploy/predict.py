@@ -53,7 +53,9 @@ def load_predictor(model_path: Path, device: str = "cpu"):
     if model_path.suffix == ".onnx":
         import json
 
-        from .quantize import OrtModel
+        from .quantize import OrtModel, require_onnxruntime
+
+        require_onnxruntime(f"the ONNX model {model_path}")
 
         meta_path = model_path.with_name("meta.json")
         if not model_path.is_file():

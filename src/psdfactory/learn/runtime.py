@@ -25,9 +25,11 @@ def pick_device(name: str) -> torch.device:
 
 
 def cpu_has_fast_bf16() -> bool:
-    """AVX512-BF16 or AMX: bf16 matmuls/convolutions run natively (measured 3-4× over fp32)."""
-    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
-    return any(getattr(torch.cpu, c, lambda: False)() for c in checks)
+    """Native bf16 matmuls/convolutions that PyTorch may use here (AVX512-BF16 or AMX, not masked
+    by ATEN_CPU_CAPABILITY; Arm bf16). Only says bf16 is worth timing: see faster_cpu_precision."""
+    from . import capability
+
+    return capability.detect().native_bf16
 
 
 def pick_precision(name: str, device: torch.device) -> str:

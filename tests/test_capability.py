@@ -1,0 +1,68 @@
+"""CPU capability detection: what the fast paths may try here (PyTorch's own ATEN_CPU_CAPABILITY honoured)."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from psdfactory import capability
+from psdfactory.benchmark import candidates
+
+
+def _detect_with(env: dict) -> dict:
+    code = "import json; from psdfactory.capability import detect; print(json.dumps(detect().as_dict()))"
+    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, **env}, capture_output=True, text=True,
+                         check=True)
+    return json.loads(out.stdout)
+
+
+@pytest.mark.parametrize("isa", ["avx2", "default"])
+def test_aten_cpu_capability_forces_the_portable_path(isa):
+    caps = _detect_with({"ATEN_CPU_CAPABILITY": isa})
+    assert caps["forced_isa"] == isa
+    if caps["machine"] == "x86_64":
+        assert caps["torch_isa"] == isa.upper()
+        assert caps["native_bf16"] is False  # bf16 kernels need AVX-512: masked by the forced ISA
+    assert f"ATEN_CPU_CAPABILITY={isa}" in caps["summary"]
+
+
+def test_detect_describes_this_machine():
+    caps = capability.detect()
+    assert caps.cpu_model and caps.machine
+    assert caps.torch_isa == str(torch.backends.cpu.get_cpu_capability()).upper()
+    assert set(caps.flags) <= set(capability.REPORTED_FLAGS)
+    if caps.native_bf16 and caps.machine == "x86_64":
+        assert caps.torch_isa in capability.AVX512_ISAS
+
+
+def _caps(bf16: bool, ort: bool) -> capability.Capabilities:
+    return capability.Capabilities("x86_64", "test", (), "AVX2", "", bf16, False, ort)
+
+
+@pytest.mark.parametrize("bf16", [False, True])
+@pytest.mark.parametrize("ort", [False, True])
+def test_candidates_follow_the_capabilities(bf16, ort):
+    paths, skipped = candidates(torch.device("cpu"), _caps(bf16, ort))
+    assert {"fp32", "channels_last"} <= set(paths)
+    assert ("bf16" in paths) == bf16 and ("bf16" in skipped) == (not bf16)
+    assert ("int8" in paths) == ort == ("ort_fp32" in paths)
+    assert not ort or paths["int8"].engine == "onnxruntime"
+    assert not set(paths) & set(skipped)
+
+
+def test_candidates_name_a_forced_isa():
+    caps = capability.Capabilities("x86_64", "test", (), "AVX2", "avx2", False, True, True)
+    _, skipped = candidates(torch.device("cpu"), caps)
+    assert "forced to avx2" in skipped["bf16"]
+
+
+def test_missing_onnxruntime_is_a_clear_error(monkeypatch):
+    from psdfactory import PsdError
+    from psdfactory.quantize import require_onnxruntime
+
+    monkeypatch.setattr(capability, "onnxruntime_available", lambda: False)
+    with pytest.raises(PsdError, match="int8 export needs ONNX Runtime"):
+        require_onnxruntime("int8 export")
