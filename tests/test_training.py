@@ -373,3 +373,15 @@ def test_benchmark_report_and_predict_in_every_capability_combination(dataset, t
             from psdfactory.deploy.export import export
 
             export(model, tmp_path / "exp", log=lambda m: None)
+
+
+def test_predict_finds_images_in_subfolders_and_skips_masks(tmp_path):
+    from psdfactory.deploy.predict import expand_inputs
+
+    for rel in ("a/scenes/s1/image.png", "a/scenes/s1/mask.png", "a/scenes/s2/image.png", "b.jpg", "c.txt",
+                ".hidden/x.png", "a/.snap/y.png"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(b"")
+    found = [str(p.relative_to(tmp_path)) for p in expand_inputs([str(tmp_path)])]
+    assert found == ["a/scenes/s1/image.png", "a/scenes/s2/image.png", "b.jpg"]
+    assert expand_inputs([str(tmp_path / "a/scenes/s1/mask.png")]) == [tmp_path / "a/scenes/s1/mask.png"]  # named: kept

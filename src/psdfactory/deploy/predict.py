@@ -17,12 +17,17 @@ from ..learn.models import main_output
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 
 
+NOT_PHOTOS = {"mask.png"}  # the factory's instance masks, found beside its images in a results folder
+
+
 def expand_inputs(paths: list[str]) -> list[Path]:
-    """Files as given; folders → their image files (sorted)."""
+    """Files as given; folders → their image files, subfolders included (sorted by path),
+    skipping the factory's ``mask.png`` files and hidden folders."""
     out: list[Path] = []
     for p in map(Path, paths):
         if p.is_dir():
-            out += sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
+            out += sorted(f for f in p.rglob("*") if f.suffix.lower() in IMAGE_SUFFIXES and f.name not in NOT_PHOTOS
+                          and not any(part.startswith(".") for part in f.relative_to(p).parts) and f.is_file())
         else:
             out.append(p)
     return out

@@ -1,0 +1,117 @@
+"""How much of the labels an image can possibly tell: the ceilings a model is judged against.
+
+- **visible-particle ceiling**: the labels read out, by a cross-validated linear model, from the
+  TRUE sieve sizes of the particles the camera sees (at least ``visible_min_px`` pixels in
+  ``mask.png``): their d10/d50/d90, mean and count. A perfect measurement of every visible
+  particle gives this much; hidden fines and the particles under the top layer cost the rest.
+- **sampling ceiling** (where the generator's μ and σ vary between scenes): the labels read out
+  from the generator's own population percentiles (the truncated normal's d10/d50/d90) and μ, σ.
+  It measures how much a scene's ~N particles scatter around the distribution they were drawn
+  from; a model that beats it reads the actual particles, not the recipe.
+
+Both are R² per target (d10, d50, d90), out-of-fold over k folds of a dataset's scenes. Pure
+numpy/scipy: no torch.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import PsdError
+from ..scene.labels import weighted_percentiles
+
+TARGETS = ("d10_mm", "d50_mm", "d90_mm")
+MIN_SCENES = 6  # fewer scenes than this give no meaningful cross-validated figure
+
+
+def visible_features(sizes: np.ndarray, visible_px: np.ndarray, min_px: int = 1) -> np.ndarray:
+    """[d10, d50, d90, mean, log(1 + count)] of the true sizes of the visible particles
+    (number-weighted, the labels' percentile convention); NaNs where none is visible."""
+    seen = np.asarray(sizes, float)[np.asarray(visible_px) >= min_px]
+    if seen.size == 0:
+        return np.full(5, np.nan)
+    return np.array([*weighted_percentiles(seen, None), seen.mean(), np.log1p(seen.size)])
+
+
+def sampling_features(mean: np.ndarray, sigma: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
+    """Per scene: the generator's population d10/d50/d90 (truncated normal on `bounds`), μ and σ."""
+    from scipy.stats import truncnorm
+
+    mean, sigma = np.asarray(mean, float), np.asarray(sigma, float)
+    a, b = (bounds[0] - mean) / sigma, (bounds[1] - mean) / sigma
+    pop = np.stack([truncnorm.ppf(q, a, b, loc=mean, scale=sigma) for q in (0.1, 0.5, 0.9)], axis=1)
+    return np.column_stack([pop, mean, sigma])
+
+
+def r2_scores(y: np.ndarray, pred: np.ndarray) -> np.ndarray:
+    """R² per column."""
+    ss_res = ((y - pred) ** 2).sum(axis=0)
+    ss_tot = ((y - y.mean(axis=0)) ** 2).sum(axis=0)
+    return 1.0 - ss_res / np.where(ss_tot > 0, ss_tot, np.nan)
+
+
+def cross_validated_r2(x: np.ndarray, y: np.ndarray, folds: int = 5, ridge: float = 1e-3, seed: int = 0) -> np.ndarray:
+    """Out-of-fold R² per target of a ridge-regularised linear read-out of `y` (N×T) from `x`
+    (N×F); features standardised on each training fold. Rows with a NaN feature are dropped."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    ok = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
+    x, y = x[ok], y[ok]
+    n = len(y)
+    if n < MIN_SCENES:
+        raise PsdError(f"{n} usable scenes: a cross-validated ceiling needs at least {MIN_SCENES}")
+    order = np.random.default_rng(seed).permutation(n)
+    pred = np.empty_like(y)
+    for k in range(min(folds, n)):
+        test = order[k::min(folds, n)]
+        train = np.setdiff1d(order, test)
+        mu, sd = x[train].mean(axis=0), x[train].std(axis=0)
+        sd[sd == 0] = 1.0
+        a = np.column_stack([np.ones(len(train)), (x[train] - mu) / sd])
+        reg = ridge * len(train) * np.eye(a.shape[1])
+        reg[0, 0] = 0.0  # no penalty on the intercept
+        w = np.linalg.solve(a.T @ a + reg, a.T @ y[train])
+        pred[test] = np.column_stack([np.ones(len(test)), (x[test] - mu) / sd]) @ w
+    return r2_scores(y, pred)
+
+
+def dataset_ceilings(scenes: list[dict], particles: dict[str, tuple[np.ndarray, np.ndarray]],
+                     bounds: tuple[float, float], visible_min_px: int = 1, folds: int = 5) -> dict:
+    """Both ceilings of one dataset. `scenes`: manifest rows (scene_id, labels, size_mean,
+    size_sigma); `particles`: scene_id → (true sizes, visible pixels)."""
+    y = np.array([[s[t] for t in TARGETS] for s in scenes], float)
+    out: dict = {"n_scenes": len(scenes), "targets": list(TARGETS), "folds": folds,
+                 "label_sd_mm": dict(zip(TARGETS, y.std(axis=0).round(4).tolist()))}
+    if len(scenes) < MIN_SCENES:
+        out["note"] = f"{len(scenes)} scenes: too few for a cross-validated ceiling (needs {MIN_SCENES})"
+        out["visible"] = out["sampling"] = None
+        return out
+    xv = np.stack([visible_features(*particles[s["scene_id"]], min_px=visible_min_px) for s in scenes])
+    out["visible"] = dict(zip(TARGETS, cross_validated_r2(xv, y, folds).tolist()))
+    mean, sigma = (np.array([s[k] for s in scenes], float) for k in ("size_mean", "size_sigma"))
+    if np.ptp(mean) > 0 or np.ptp(sigma) > 0:
+        xs = sampling_features(mean, sigma, bounds)
+        out["sampling"] = dict(zip(TARGETS, cross_validated_r2(xs, y, folds).tolist()))
+    else:
+        out["sampling"] = None  # one fixed distribution: the labels differ by sampling noise alone
+    return out
+
+
+def ceilings_from_manifests(scene_shards: list, particle_shards: list, bounds: tuple[float, float],
+                            visible_min_px: int = 1, folds: int = 5) -> dict:
+    """`dataset_ceilings` of the scenes in these manifest shards (Parquet files)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    scenes = pa.concat_tables([pq.read_table(f) for f in scene_shards]).to_pylist()
+    parts = pa.concat_tables([pq.read_table(f, columns=["scene_id", "size_mm", "visible_px"]) for f in particle_shards])
+    ids = np.asarray(parts.column("scene_id").to_pylist())
+    size, vis = np.asarray(parts.column("size_mm")), np.asarray(parts.column("visible_px"))
+    order = np.argsort(ids, kind="stable")
+    uniq, start = np.unique(ids[order], return_index=True)
+    groups = np.split(order, start[1:])
+    particles = {str(u): (size[g], vis[g]) for u, g in zip(uniq, groups)}
+    missing = [s["scene_id"] for s in scenes if s["scene_id"] not in particles]
+    if missing:
+        raise PsdError(f"the particle manifest has no rows for {len(missing)} scenes (e.g. {missing[0]}); "
+                       "rerun the manifest jobs")
+    return dataset_ceilings(scenes, particles, bounds, visible_min_px, folds)

@@ -1,0 +1,75 @@
+"""The ceilings a model is judged against, on synthetic cases with known answers."""
+
+import numpy as np
+import pytest
+
+from psdfactory import PsdError
+from psdfactory.learn.ceiling import (TARGETS, cross_validated_r2, dataset_ceilings, sampling_features,
+                                visible_features)
+from psdfactory.scene.labels import weighted_percentiles
+
+
+def test_visible_features_use_only_the_visible_particles():
+    f = visible_features(np.array([1.0, 2, 3, 4, 5]), np.array([0, 5, 5, 5, 0]), min_px=1)
+    assert f[1] == pytest.approx(3.0) and f[3] == pytest.approx(3.0) and f[4] == pytest.approx(np.log(4))
+    assert f[0] < f[1] < f[2]
+    assert np.isnan(visible_features(np.array([1.0]), np.array([0]))).all()
+    assert visible_features(np.array([1.0, 2]), np.array([3, 9]), min_px=5)[3] == 2.0  # 3 px < 5: not seen
+
+
+def test_cross_validated_r2_known_answers():
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((3000, 2))
+    exact = np.column_stack([2 * x[:, 0] + 1, x[:, 1] - x[:, 0]])
+    assert cross_validated_r2(x, exact) == pytest.approx([1.0, 1.0], abs=1e-3)
+    # y = x0 + noise of sd 0.5: R² = 1 / (1 + 0.25) = 0.8
+    noisy = (x[:, 0] + 0.5 * rng.standard_normal(3000))[:, None]
+    assert cross_validated_r2(x, noisy)[0] == pytest.approx(0.8, abs=0.02)
+    # features that say nothing: out of fold, no better than the mean
+    assert cross_validated_r2(rng.standard_normal((200, 3)), rng.standard_normal((200, 1)))[0] < 0.05
+    with pytest.raises(PsdError, match="at least"):
+        cross_validated_r2(x[:3], exact[:3])
+
+
+def test_sampling_features_are_the_population_percentiles():
+    f = sampling_features(np.array([10.0]), np.array([2.0]), bounds=(-1e6, 1e6))[0]
+    assert f[:3] == pytest.approx([10 - 1.28155 * 2, 10, 10 + 1.28155 * 2], abs=1e-3)
+    g = sampling_features(np.array([1.0]), np.array([5.0]), bounds=(0.1, 20))[0]
+    assert 0.1 < g[0] < g[1] < g[2] < 20 and g[1] > 1.0  # truncation at 0.1 lifts the median
+
+
+def _scenes(n, hide_small=0.0, seed=1):
+    rng = np.random.default_rng(seed)
+    scenes, particles = [], {}
+    for i in range(n):
+        mu, sd = rng.uniform(5, 10), rng.uniform(1, 3)
+        sizes = np.clip(rng.normal(mu, sd, 300), 0.5, None)
+        vis = np.where(sizes < hide_small, 0, 10)
+        d = weighted_percentiles(sizes, None)
+        scenes.append({"scene_id": f"s{i}", **dict(zip(TARGETS, d)), "size_mean": mu, "size_sigma": sd})
+        particles[f"s{i}"] = (sizes, vis)
+    return scenes, particles
+
+
+def test_every_particle_visible_gives_a_perfect_visible_ceiling():
+    scenes, particles = _scenes(40)
+    c = dataset_ceilings(scenes, particles, bounds=(0.5, 100))
+    assert [c["visible"][t] for t in TARGETS] == pytest.approx([1.0, 1.0, 1.0], abs=1e-3)
+    # μ, σ known but 300 particles scatter around them: below 1, well above 0
+    assert all(0.5 < c["sampling"][t] < 0.999 for t in TARGETS)
+
+
+def test_hidden_fines_lower_the_d10_ceiling_most():
+    scenes, particles = _scenes(60, hide_small=6.0)
+    c = dataset_ceilings(scenes, particles, bounds=(0.5, 100))["visible"]
+    assert c["d10_mm"] < c["d90_mm"] and c["d90_mm"] > 0.9
+
+
+def test_too_few_scenes_or_one_fixed_distribution():
+    scenes, particles = _scenes(4)
+    c = dataset_ceilings(scenes, particles, bounds=(0.5, 100))
+    assert c["visible"] is None and "too few" in c["note"]
+    scenes, particles = _scenes(20)
+    for s in scenes:
+        s["size_mean"], s["size_sigma"] = 7.0, 2.0
+    assert dataset_ceilings(scenes, particles, bounds=(0.5, 100))["sampling"] is None
