@@ -8,12 +8,12 @@ import sys
 import pytest
 import torch
 
-from psdfactory import capability
-from psdfactory.benchmark import candidates
+from psdfactory.learn import capability
+from psdfactory.deploy.benchmark import candidates
 
 
 def _detect_with(env: dict) -> dict:
-    code = "import json; from psdfactory.capability import detect; print(json.dumps(detect().as_dict()))"
+    code = "import json; from psdfactory.learn.capability import detect; print(json.dumps(detect().as_dict()))"
     out = subprocess.run([sys.executable, "-c", code], env={**os.environ, **env}, capture_output=True, text=True,
                          check=True)
     return json.loads(out.stdout)
@@ -61,7 +61,7 @@ def test_candidates_name_a_forced_isa():
 
 def test_missing_onnxruntime_is_a_clear_error(monkeypatch):
     from psdfactory import PsdError
-    from psdfactory.quantize import require_onnxruntime
+    from psdfactory.deploy.quantize import require_onnxruntime
 
     monkeypatch.setattr(capability, "onnxruntime_available", lambda: False)
     with pytest.raises(PsdError, match="int8 export needs ONNX Runtime"):

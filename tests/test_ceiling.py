@@ -6,7 +6,7 @@ import pytest
 from psdfactory import PsdError
 from psdfactory.learn.ceiling import (TARGETS, cross_validated_r2, dataset_ceilings, sampling_features,
                                 visible_features)
-from psdfactory.scene.labels import weighted_percentiles
+from psdfactory.psd import weighted_percentiles
 
 
 def test_visible_features_use_only_the_visible_particles():

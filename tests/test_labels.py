@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from psdfactory import PsdError
-from psdfactory.scene.labels import LabelParams, cumulative_curve, scene_labels, visible_pixels, weighted_percentiles
+from psdfactory.psd import cumulative_curve, weighted_percentiles
+from psdfactory.scene.labels import LabelParams, scene_labels, visible_pixels
 
 
 def test_number_percentiles_hand_computed():

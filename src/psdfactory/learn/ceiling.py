@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import PsdError
-from ..scene.labels import weighted_percentiles
+from ..psd import weighted_percentiles
 
 TARGETS = ("d10_mm", "d50_mm", "d90_mm")
 MIN_SCENES = 6  # fewer scenes than this give no meaningful cross-validated figure
