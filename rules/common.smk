@@ -51,7 +51,7 @@ def all_cores(wildcards):
 
 def render_gpus(wildcards):
     """The Cycles backend renders on a GPU where there is one (SLURM: `gpu` → --gpus)."""
-    r = config["render"]
+    r = psd_config.dataset_render(config, wildcards.dataset)
     return int(r["backend"] == "cycles" and r["cycles"]["device"] != "cpu")
 
 
@@ -85,11 +85,11 @@ def sample_batch_params(wildcards):
 
 
 def simulate_params(wildcards):
-    return as_json(psd_config.simulate_params(config))
+    return as_json(psd_config.simulate_params(config, wildcards.dataset))
 
 
 def render_params(wildcards):
-    return as_json(psd_config.render_params(config))
+    return as_json(psd_config.render_params(config, wildcards.dataset))
 
 
 def label_params(wildcards):
@@ -140,6 +140,44 @@ def scene_dirs(dataset, indices):
 
 def batch_scene_dirs(wildcards):
     return scene_dirs(wildcards.dataset, psd_config.batch_indices(config, wildcards.dataset, int(wildcards.batch)))
+
+
+# ---- re-render datasets: the scenes of another dataset, rendered again --------------------
+
+
+def source_scenes(dataset, indices):
+    """(source dataset, its scene indices) of these scenes of a re-render dataset; None for a
+    dataset that makes its own scenes."""
+    if "rerender_of" not in config["datasets"][dataset]:
+        return None
+    src = psd_config.source_indices(config, dataset)
+    return config["datasets"][dataset]["rerender_of"]["dataset"], [src[i] for i in indices]
+
+
+def source_files(stage):
+    """Input function: the source scene's files that a re-rendered scene's `stage` copies."""
+
+    def inputs(wildcards):
+        found = source_scenes(wildcards.dataset, [scene_index(wildcards.scene)])
+        if found is None:
+            return {}
+        d = scene_dirs(found[0], found[1])[0]
+        return {f"source_{f.split('.')[0]}": f"{d}/{f}" for f in STAGES[stage].outputs}
+
+    return inputs
+
+
+def source_stamps(stage):
+    """Input function of a batch job: the source batches' stamps of `stage` (re-render only)."""
+
+    def inputs(wildcards):
+        found = source_scenes(wildcards.dataset, psd_config.batch_indices(config, wildcards.dataset, int(wildcards.batch)))
+        if found is None:
+            return []
+        batches = sorted({i // config["scenes_per_job"] for i in found[1]})
+        return [batch_stamp_of(found[0], stage, b) for b in batches]
+
+    return inputs
 
 
 def shard_scene_dirs(wildcards):

@@ -1,4 +1,6 @@
 rule sample:
+    input:
+        unpack(source_files("sample")),
     output:
         spec=scene_path("spec.json"),
         geometry=scene_path("geometry.npz"),
@@ -15,6 +17,8 @@ rule sample:
 
 rule sample_batch:
     """Sample a batch of scenes (scenes_per_job > 1), skipping those up to date."""
+    input:
+        source_stamps("sample"),
     output:
         stamp=batch_stamp("sample"),
     params:

@@ -1,5 +1,6 @@
 rule simulate:
     input:
+        unpack(source_files("simulate")),
         spec=scene_path("spec.json"),
         geometry=scene_path("geometry.npz"),
     output:
@@ -20,6 +21,7 @@ rule simulate_batch:
     """Simulate a batch of scenes (scenes_per_job > 1), skipping those up to date."""
     input:
         batch_stamp("sample"),
+        source_stamps("simulate"),
     output:
         stamp=batch_stamp("simulate"),
     params:

@@ -8,6 +8,7 @@ triggers fire exactly where an edit changes a stage's inputs.
 from __future__ import annotations
 
 import copy
+import functools
 from pathlib import Path
 
 from . import PsdError
@@ -21,11 +22,17 @@ def validate(config: dict) -> dict:
     from snakemake.exceptions import WorkflowError
     from snakemake.utils import validate as sm_validate
 
+    extra = [f"datasets.{n}: a re-render takes its scenes from its source; drop {', '.join(sorted(set(ds) - RERENDER_KEYS))}"
+             for n, ds in (config.get("datasets") or {}).items()
+             if isinstance(ds, dict) and "rerender_of" in ds and set(ds) - RERENDER_KEYS]
+    if extra:
+        raise PsdError("invalid config:\n  " + "\n  ".join(extra))
     try:
         sm_validate(config, str(SCHEMA), set_default=True)
     except WorkflowError as e:
         raise PsdError(f"invalid config: {_short(e)}") from None
-    problems = semantic_problems(config)
+    problems = rerender_problems(config) or resolve_datasets(config)
+    problems = problems or semantic_problems(config)
     if problems:
         raise PsdError("invalid config:\n  " + "\n  ".join(problems))
     return config
@@ -65,6 +72,89 @@ def _ordered(name: str, r: list, problems: list[str], strict: bool = False) -> N
         problems.append(f"{name}: [{r[0]}, {r[1]}] must have lo {'<' if strict else '<='} hi")
 
 
+# ---- per-dataset render settings and re-render datasets -------------------------------------
+
+RERENDER_KEYS = {"rerender_of", "render", "n_scenes", "shard_size"}  # what a re-render may set itself
+
+
+def _merged(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = _merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
+
+
+def rerender_problems(config: dict) -> list[str]:
+    """Checks of re-render datasets that must see the keys as the user gave them (before the
+    schema's defaults are filled in, a dataset's own count or size would be indistinguishable)."""
+    problems = []
+    for name, ds in config["datasets"].items():
+        src = ds.get("rerender_of", {}).get("dataset")
+        if src is None:
+            continue
+        key = f"datasets.{name}.rerender_of"
+        if src not in config["datasets"]:
+            problems.append(f"{key}.dataset: {src!r} is not one of the configured datasets")
+        elif "rerender_of" in config["datasets"][src]:
+            problems.append(f"{key}.dataset: {src!r} is itself a re-render; name the dataset it re-renders")
+        elif ds["rerender_of"]["split"] not in config["datasets"][src]["split"]:
+            problems.append(f"{key}.split: {src!r} has no split {ds['rerender_of']['split']!r} "
+                            f"(its splits: {', '.join(config['datasets'][src]['split'])})")
+    return problems
+
+
+def resolve_datasets(config: dict) -> list[str]:
+    """Fill in each dataset's own `render` (the top-level one with its overrides, validated like
+    it) and a re-render's scene settings (its source's), its scene count and its split."""
+    from snakemake.exceptions import WorkflowError
+    from snakemake.utils import validate as sm_validate
+
+    problems = []
+    for name, ds in config["datasets"].items():
+        if "render" in ds:
+            merged = {"datasets": {"x": {"n_scenes": 1}}, "render": _merged(config["render"], ds["render"])}
+            try:
+                sm_validate(merged, str(SCHEMA), set_default=True)
+            except WorkflowError as e:
+                problems.append(f"datasets.{name}.{_short(e)}")
+                continue
+            ds["render"] = merged["render"]
+        if "rerender_of" not in ds:
+            continue
+        src = config["datasets"][ds["rerender_of"]["dataset"]]
+        for k in ("shape", "shape_params", "table_size", "count", "size", "placement"):
+            ds[k] = copy.deepcopy(src[k])
+        n = len(source_indices(config, name, cap=False))
+        ds["n_scenes"] = min(ds.get("n_scenes", n), n)
+        ds["split"] = {"test": 1.0}
+        if ds["n_scenes"] == 0:
+            problems.append(f"datasets.{name}.rerender_of: {ds['rerender_of']['dataset']!r} has no "
+                            f"{ds['rerender_of']['split']!r} scenes to re-render")
+    return problems
+
+
+def dataset_render(config: dict, dataset: str) -> dict:
+    """The render settings of one dataset (its own, or the top-level ones)."""
+    return config["datasets"][dataset].get("render") or config["render"]
+
+
+def source_indices(config: dict, dataset: str, cap: bool = True) -> list[int]:
+    """A re-render's scenes: the indices of its source's scenes in the chosen split (known from
+    each scene's random stream, before any scene exists), at most n_scenes of them."""
+    r = config["datasets"][dataset]["rerender_of"]
+    src = config["datasets"][r["dataset"]]
+    idx = _split_indices(config["seed"], r["dataset"], src["n_scenes"], tuple(sorted(src["split"].items())), r["split"])
+    return list(idx[: config["datasets"][dataset]["n_scenes"]] if cap else idx)
+
+
+@functools.lru_cache(maxsize=64)
+def _split_indices(seed: int, dataset: str, n: int, fractions: tuple, split: str) -> tuple[int, ...]:
+    from .seeding import assign_split, scene_entropy
+
+    fr = dict(fractions)
+    return tuple(i for i in range(n) if assign_split(scene_entropy(seed, dataset, i), fr) == split)
+
+
 def semantic_problems(config: dict) -> list[str]:
     problems: list[str] = []
     for name, ds in config["datasets"].items():
@@ -98,19 +188,21 @@ def semantic_problems(config: dict) -> list[str]:
                     problems.append(f"{key}.shape_params.mesh_files: file not found: {f}")
         elif sp.get("mesh_files"):
             problems.append(f"{key}.shape_params.mesh_files: only used with shape 'mesh' (shape is {ds['shape']!r})")
-    r = config["render"]
-    for k in ("light_elevation_deg", "exposure", "blur_px", "noise_sigma", "ambient"):
-        _ordered(f"render.{k}", r[k], problems)
-    if r["backend"] == "cycles":
-        for k in ("roughness", "sun_strength", "sun_angle_deg", "sky_strength"):
-            _ordered(f"render.cycles.{k}", r["cycles"][k], problems)
-        for name, ds in config["datasets"].items():
-            if ds["count"][1] > 32766:
-                problems.append(f"datasets.{name}.count: the cycles backend takes at most 32766 particles "
-                                "(Blender's object index tops out at 32767)")
-    lo, hi = r["light_elevation_deg"]
-    if not (0 < lo and hi <= 90):
-        problems.append("render.light_elevation_deg: must lie in (0, 90]")
+    renders = [("render", config["render"])] + [(f"datasets.{n}.render", ds["render"])
+                                                for n, ds in config["datasets"].items() if "render" in ds]
+    for key, r in renders:
+        for k in ("light_elevation_deg", "exposure", "blur_px", "noise_sigma", "ambient"):
+            _ordered(f"{key}.{k}", r[k], problems)
+        lo, hi = r["light_elevation_deg"]
+        if not (0 < lo and hi <= 90):
+            problems.append(f"{key}.light_elevation_deg: must lie in (0, 90]")
+        if r["backend"] == "cycles":
+            for k in ("roughness", "sun_strength", "sun_angle_deg", "sky_strength"):
+                _ordered(f"{key}.cycles.{k}", r["cycles"][k], problems)
+    for name, ds in config["datasets"].items():
+        if dataset_render(config, name)["backend"] == "cycles" and ds["count"][1] > 32766:
+            problems.append(f"datasets.{name}.count: the cycles backend takes at most 32766 particles "
+                            "(Blender's object index tops out at 32767)")
     t = config["train"]
     if t["dataset"] not in config["datasets"]:
         problems.append(f"train.dataset: {t['dataset']!r} is not one of the configured datasets ({', '.join(config['datasets'])})")
@@ -127,8 +219,15 @@ def semantic_problems(config: dict) -> list[str]:
 # ---- the slice of config each stage depends on ---------------------------------------------
 
 def sample_params(config: dict, dataset: str, index: int | None = None) -> dict:
-    """A dataset's sampling settings; with `index`, one scene's (else the scene runner adds it)."""
+    """A dataset's sampling settings; with `index`, one scene's (else the scene runner adds it).
+    A re-render's: where its scenes come from (the scene runner picks each scene's source)."""
     ds = config["datasets"][dataset]
+    if "rerender_of" in ds:
+        out = {"dataset": dataset, "source": {"dataset": ds["rerender_of"]["dataset"],
+                                              "indices": source_indices(config, dataset)}}
+        if index is not None:
+            out = rerender_scene_params(out, int(index))
+        return out
     out = {
         "seed": config["seed"],
         "dataset": dataset,
@@ -144,14 +243,26 @@ def sample_params(config: dict, dataset: str, index: int | None = None) -> dict:
     return out
 
 
-def simulate_params(config: dict) -> dict:
+def rerender_scene_params(params: dict, index: int) -> dict:
+    """One re-rendered scene's sample params: its own index and its source scene's."""
+    src = params["source"]
+    if not 0 <= index < len(src["indices"]):
+        raise PsdError(f"{params['dataset']} has {len(src['indices'])} scenes; there is no scene {index}")
+    return {"dataset": params["dataset"], "index": index,
+            "source": {"dataset": src["dataset"], "index": src["indices"][index]}}
+
+
+def simulate_params(config: dict, dataset: str | None = None) -> dict:
+    """The physics settings; a re-render copies its source's settled poses instead."""
+    if dataset is not None and "rerender_of" in config["datasets"][dataset]:
+        return {"copy_from_source": True}
     return copy.deepcopy(config["physics"])
 
 
-def render_params(config: dict) -> dict:
-    """The render slice; the Cycles settings only when that backend renders (so editing them
-    does not rerun the fast backend's renders)."""
-    out = copy.deepcopy(config["render"])
+def render_params(config: dict, dataset: str | None = None) -> dict:
+    """A dataset's render slice (the top-level one without a dataset); the Cycles settings only when that backend renders (so editing
+    them does not rerun the fast backend's renders)."""
+    out = copy.deepcopy(dataset_render(config, dataset) if dataset else config["render"])
     if out["backend"] != "cycles":
         out.pop("cycles", None)
     return out

@@ -15,9 +15,7 @@ import pyarrow as pa
 
 from . import PsdError
 from .io import read_json, read_parquet, write_parquet
-from .seeding import rng_for
-
-SPLIT_ORDER = ("train", "val", "test")
+from .seeding import assign_split
 
 SCENE_SCHEMA = pa.schema(
     [
@@ -54,21 +52,6 @@ SCENE_SCHEMA = pa.schema(
 )
 
 PARTICLE_COLUMNS = ("scene_id", "particle_id", "size_mm", "volume_mm3", "x_mm", "y_mm", "z_mm", "visible_px")
-
-
-def assign_split(entropy: list[int], fractions: dict[str, float]) -> str:
-    """A scene's split from its own random stream: stable when scenes are added."""
-    names = [s for s in SPLIT_ORDER if s in fractions] + sorted(s for s in fractions if s not in SPLIT_ORDER)
-    total = sum(fractions[s] for s in names)
-    if total <= 0:
-        raise PsdError("split fractions must add up to more than 0")
-    u = rng_for(entropy, "split").random() * total
-    acc = 0.0
-    for s in names:
-        acc += fractions[s]
-        if u < acc:
-            return s
-    return names[-1]
 
 
 def shard_name(k: int) -> str:

@@ -39,3 +39,24 @@ def scene_index(scene: str) -> int:
         return int(scene.rsplit("-", 1)[1])
     except (IndexError, ValueError):
         raise ValueError(f"not a scene id: {scene!r} (expected '<dataset>-<6-digit index>')") from None
+
+
+SPLIT_ORDER = ("train", "val", "test")
+
+
+def assign_split(entropy: list[int], fractions: dict[str, float]) -> str:
+    """A scene's split from its own random stream: stable when scenes are added, and known
+    before the scene exists (a re-render dataset picks its source's test scenes by it)."""
+    from . import PsdError
+
+    names = [s for s in SPLIT_ORDER if s in fractions] + sorted(s for s in fractions if s not in SPLIT_ORDER)
+    total = sum(fractions[s] for s in names)
+    if total <= 0:
+        raise PsdError("split fractions must add up to more than 0")
+    u = rng_for(entropy, "split").random() * total
+    acc = 0.0
+    for s in names:
+        acc += fractions[s]
+        if u < acc:
+            return s
+    return names[-1]

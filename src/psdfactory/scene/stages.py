@@ -15,6 +15,7 @@ folder (one job per scene) or a batch of folders, skipping the scenes that are u
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,9 +24,9 @@ from typing import Callable
 import numpy as np
 
 from .. import PsdError
-from ..io import read_json, read_npz, read_parquet, read_png, write_json, write_npz, write_parquet, write_png
+from ..io import atomic_path, read_json, read_npz, read_parquet, read_png, write_json, write_npz, write_parquet, write_png
 from .geometry import Geometry
-from ..seeding import scene_index
+from ..seeding import scene_id, scene_index
 
 POSE_COLUMNS = ("particle_id", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "settled")
 
@@ -49,9 +50,55 @@ def load_poses(scene_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return pos, quat, col("settled")
 
 
+def source_dir(scene_dir: Path, dataset: str, index: int) -> Path:
+    """The folder of scene `index` of `dataset` beside a scene folder (same results root)."""
+    return Path(scene_dir).parent.parent.parent / dataset / "scenes" / scene_id(dataset, index)
+
+
+def source_inputs(stage: str, params: dict, scene_dir: Path) -> list[Path]:
+    """The files of another dataset that a re-rendered scene's stage copies (its inputs too)."""
+    if stage == "sample" and "source" in params:
+        src = source_dir(scene_dir, params["source"]["dataset"], params["source"]["index"])
+        return [src / "spec.json", src / "geometry.npz"]
+    if stage == "simulate" and params.get("copy_from_source"):
+        s = read_json(Path(scene_dir) / "spec.json")["source"]
+        src = source_dir(scene_dir, s["dataset"], s["index"])
+        return [src / "poses.parquet", src / "simulate.json"]
+    return []
+
+
+def adopt_source(stage: str, params: dict, scene_dir: Path) -> dict:
+    """A re-rendered scene takes its particles (sample) or settled poses (simulate) from its
+    source scene, byte for byte; only its spec names it as itself, keeping the source's random
+    streams (so the look drawn for the render is the source's too)."""
+    files = source_inputs(stage, params, scene_dir)
+    missing = [f for f in files if not f.is_file()]
+    if missing:
+        raise PsdError(f"{scene_dir.name} re-renders {missing[0].parent.name}, which lacks {missing[0].name}; "
+                       "run the source dataset's stages first")
+    (meta,) = [f for f in files if f.suffix == ".json"]
+    for f in files:
+        if f is not meta:
+            with atomic_path(scene_dir / f.name) as tmp:
+                shutil.copyfile(f, tmp)
+    record = read_json(meta)
+    if stage == "sample":
+        src = params["source"]
+        record.update(dataset=params["dataset"], index=params["index"], scene_id=scene_dir.name,
+                      source={"dataset": src["dataset"], "index": src["index"], "scene_id": record["scene_id"]})
+    else:
+        record["scene_id"] = scene_dir.name
+    write_json(scene_dir / meta.name, record)  # last: marks the stage complete
+    log(f"{stage}: {scene_dir.name} takes its {'particles' if stage == 'sample' else 'settled poses'} from "
+        f"{meta.parent.name} (a re-render)")
+    return record
+
+
 def run_sample(params: dict, scene_dir: Path) -> dict:
     from .sampling import SampleParams, sample_scene
 
+    if "source" in params:
+        return adopt_source("sample", params, scene_dir)
     t0 = time.perf_counter()
     spec, geometry = sample_scene(SampleParams.from_dict(params))
     write_npz(scene_dir / "geometry.npz", **geometry)
@@ -66,6 +113,8 @@ def run_simulate(params: dict, scene_dir: Path) -> dict:
 
     from .physics import PhysicsParams, simulate
 
+    if params.get("copy_from_source"):
+        return adopt_source("simulate", params, scene_dir)
     spec = read_json(scene_dir / "spec.json")
     geometry = load_geometry(scene_dir)
     if len(geometry) != spec["samplesize"]:
@@ -205,6 +254,10 @@ def scene_params(stage: str, params: dict, scene_dir: Path) -> dict:
         index = scene_index(scene_dir.name)
     except ValueError as e:
         raise PsdError(f"{scene_dir}: {e}") from None
+    if "indices" in params.get("source", {}):
+        from ..config import rerender_scene_params
+
+        return rerender_scene_params(params, index)
     return {**params, "index": index}
 
 
@@ -221,7 +274,8 @@ def up_to_date(stage: str, params: dict, scene_dir: Path) -> bool:
         done = rec.stat().st_mtime_ns
         if any(not (scene_dir / f).is_file() for f in st.outputs):
             return False
-        if any((scene_dir / f).stat().st_mtime_ns > done for f in st.inputs):
+        inputs = [scene_dir / f for f in st.inputs] + source_inputs(stage, params, scene_dir)
+        if any(f.stat().st_mtime_ns > done for f in inputs):
             return False
         return json.loads(rec.read_text()).get("params") == json.loads(_canonical(params))
     except (OSError, ValueError):
