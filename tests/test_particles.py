@@ -104,6 +104,26 @@ def test_rotated_rectangle_feret(angle):
     assert np.hypot(44, 12) - 1.5 <= fmax[0] <= np.hypot(44, 12) + 1
 
 
+def test_feret_of_irregular_instances_matches_brute_force():
+    # non-convex, holed and disconnected instances: smoothed noise cut into Voronoi cells
+    from scipy import ndimage
+
+    rng = np.random.default_rng(11)
+    h, w = 90, 110
+    noise = ndimage.gaussian_filter(rng.normal(size=(h, w)), 2.5)
+    cells = np.zeros((h, w), dtype=np.uint16)
+    cells.ravel()[rng.choice(h * w, 25, replace=False)] = np.arange(1, 26)
+    _, (ir, ic) = ndimage.distance_transform_edt(cells == 0, return_indices=True)
+    mask = np.where(noise > np.quantile(noise, 0.4), cells[ir, ic], 0).astype(np.uint16)
+    mask[np.isin(mask, [3, 4])] = 3  # one instance in two separate cells
+    ids, fmin, fmax = feret_diameters_px(mask)
+    assert len(ids) >= 20
+    for k, a, b in zip(ids, fmin, fmax):
+        bmin, bmax = brute_force_feret(mask, k, n_angles=3600)
+        assert bmin - 0.05 <= a <= bmin + 1e-9, k
+        assert bmax - 1e-9 <= b <= bmax + 0.05, k
+
+
 def test_axis_aligned_rectangle_is_exact():
     mask = np.zeros((30, 60), dtype=np.uint16)
     mask[5:15, 10:50] = 4  # 10 rows x 40 columns

@@ -5,8 +5,8 @@ Input convention (the factory's own): an instance mask is a 2-D integer array (u
 image's scale `mm_per_px`; pixel (r, c) has its centre at (r, c) (index coordinates, as the
 centroids).
 
-What is measured per instance (`measure_instances`), all vectorised over the whole mask except
-the convex hull, which is one Qhull call per instance on a few dozen points:
+What is measured per instance (`measure_instances`), vectorised over all instances of the
+mask at once (no Python loop over instances):
 
 - `area_px`, `area_mm2`: pixel count, and that times `mm_per_px**2`.
 - `eq_diameter_mm`: diameter of the circle of the same area, sqrt(4 A / pi).
@@ -17,7 +17,7 @@ the convex hull, which is one Qhull call per instance on a few dozen points:
 - `min_feret_mm`, `max_feret_mm`: the narrowest and widest caliper width, exact by rotating
   calipers (the minimum width has one caliper on a hull edge, the maximum is the largest vertex
   distance) on the convex hull of the pixel centres, plus one pixel: each pixel counts as a
-  disc of unit diameter. Only the first and last pixel of every horizontal run enter the hull,
+  disc of unit diameter. The hull is built from each row's leftmost and rightmost pixel,
   which does not change it. Along the image axes this equals the hull of the pixel corners
   (the pixel squares); on diagonals it avoids the squares' excess of up to 0.41 px, so a
   digitised disc measures about its diameter in every direction. Measured on digitised
@@ -77,7 +77,6 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import ConvexHull, QhullError
 
 from psdfactory import PsdError
 from psdfactory.labels import PERCENTILES, cumulative_curve, weighted_percentiles
@@ -145,44 +144,78 @@ def _compact(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return ids, counts[ids], lookup
 
 
-def _run_ends(mask: np.ndarray, lookup: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Centres (x = col, y = row) of the first and last pixel of every horizontal run, and the
-    compact instance index of each; their convex hull is that of all the instance's pixels."""
+def _row_extremes(mask: np.ndarray, lookup: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(instance index, row, leftmost col, rightmost col) of every row of every instance,
+    sorted by instance then row: the convex hull of these pixel centres is the instance's."""
+    h = mask.shape[0]
     fg = mask > 0
     start = fg.copy()
     start[:, 1:] &= mask[:, 1:] != mask[:, :-1]
     end = fg.copy()
     end[:, :-1] &= mask[:, :-1] != mask[:, 1:]
-    rs, cs = np.nonzero(start)
-    re, ce = np.nonzero(end)
-    pts = np.column_stack([np.concatenate([cs, ce]), np.concatenate([rs, re])]).astype(float)
-    return pts, lookup[np.concatenate([mask[rs, cs], mask[re, ce]])]
+    extremes = []
+    for flags, reduce in ((start, np.minimum), (end, np.maximum)):
+        r, c = np.nonzero(flags)  # run starts (ends): few compared with pixels
+        key = lookup[mask[r, c]] * h + r
+        order = np.argsort(key, kind="stable")
+        key, c = key[order], c[order]
+        first = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]])) if len(key) else np.zeros(0, np.int64)
+        extremes.append((key[first], reduce.reduceat(c, first) if len(key) else c))
+    (key, left), (_, right) = extremes  # every row of an instance has a run start and a run end
+    return key // h, key % h, left, right
 
 
-def _feret(hull_pts: np.ndarray) -> tuple[float, float]:
-    """(minimum, maximum) caliper width of a convex polygon given counter-clockwise."""
-    edges = np.roll(hull_pts, -1, axis=0) - hull_pts
-    lengths = np.hypot(edges[:, 0], edges[:, 1])
-    d = hull_pts[None, :, :] - hull_pts[:, None, :]  # d[i, j] = p_j - p_i
-    cross = edges[:, 0, None] * d[:, :, 1] - edges[:, 1, None] * d[:, :, 0]
-    widths = np.abs(cross).max(axis=1) / lengths
-    return float(widths.min()), float(np.sqrt((d**2).sum(axis=-1).max()))
+def _convex_chain(x: np.ndarray, y: np.ndarray, group: np.ndarray, sign: int) -> np.ndarray:
+    """Indices of the points left of the convex minorant (sign=+1: the chain of smallest x as a
+    function of y; sign=-1: of largest x) of each group's points, given sorted by group then y.
+
+    Every point that does not bulge outwards from the chord to its neighbours is dropped, all at
+    once, until none is left: a point inward of (or on) its chord is never a hull vertex, and a
+    run of such neighbours lies inward of the chord of its ends (a discrete concave sequence
+    stays above its chord), so the simultaneous drops are safe. Integer arithmetic: exact.
+    """
+    alive = np.arange(len(x))
+    while len(alive) >= 3:
+        xa, ya, ga = x[alive], y[alive], group[alive]
+        i = np.flatnonzero((ga[1:-1] == ga[:-2]) & (ga[1:-1] == ga[2:])) + 1
+        if not len(i):
+            break
+        bulge = (xa[i] - xa[i - 1]) * (ya[i + 1] - ya[i - 1]) - (xa[i + 1] - xa[i - 1]) * (ya[i] - ya[i - 1])
+        drop = i[sign * bulge >= 0]
+        if not len(drop):
+            break
+        alive = np.delete(alive, drop)
+    return alive
 
 
-def _feret_of_points(p: np.ndarray) -> tuple[float, float]:
-    """(min, max) caliper width of a point set; 0 wide when the points are collinear."""
-    if len(p) >= 3 and np.ptp(p[:, 0]) > 0 and np.ptp(p[:, 1]) > 0:
-        try:
-            return _feret(p[ConvexHull(p).vertices])  # counter-clockwise in 2-D
-        except QhullError:  # collinear (a one-pixel-thin diagonal line)
-            pass
-    return 0.0, _line_length(p)  # collinear: a line, or one pixel
-
-
-def _line_length(p: np.ndarray) -> float:
-    """Largest distance between collinear points (along their common direction)."""
-    far = p[np.argmax(((p - p[0]) ** 2).sum(axis=1))]
-    return float(np.sqrt(((p - far) ** 2).sum(axis=1).max()))
+def _polygon_feret(pts: np.ndarray, offsets: np.ndarray, counts: np.ndarray, budget: int = 1 << 20) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) caliper width of convex polygons (vertices in order, one polygon per
+    offset/count), all at once: for every edge the farthest vertex from its line (the minimum
+    width has a caliper on an edge), and the largest vertex distance. Polygons are padded to a
+    common length by repeating their last vertex (zero-length edges are ignored), in batches of
+    similar size so that batch * length^2 stays under `budget`."""
+    n = len(counts)
+    fmin, fmax = np.zeros(n), np.zeros(n)
+    by_size = np.argsort(counts, kind="stable")
+    sorted_counts = counts[by_size].astype(np.int64)
+    i = 0
+    while i < n:
+        cost = (np.arange(1, n - i + 1) * sorted_counts[i:] ** 2)  # batch i..j padded to the largest, j's
+        j = i + max(1, int(np.searchsorted(cost, budget, side="right")))
+        batch = by_size[i:j]
+        hmax = int(sorted_counts[j - 1])
+        k = np.minimum(np.arange(hmax)[None, :], counts[batch, None] - 1)
+        v = pts[offsets[batch, None] + k]  # (m, h, 2)
+        e = np.roll(v, -1, axis=1) - v  # edge i: vertex i -> i+1, the last one closing the polygon
+        length = np.hypot(e[..., 0], e[..., 1])
+        d = v[:, None, :, :] - v[:, :, None, :]  # d[:, i, j] = v_j - v_i
+        cross = np.abs(e[:, :, None, 0] * d[..., 1] - e[:, :, None, 1] * d[..., 0]).max(axis=2)
+        width = np.divide(cross, length, out=np.full_like(cross, np.inf), where=length > 0)
+        w = width.min(axis=1)
+        fmin[batch] = np.where(np.isfinite(w), w, 0.0)  # a single point has no edge
+        fmax[batch] = np.sqrt((d**2).sum(axis=-1).max(axis=(1, 2)))
+        i = j
+    return fmin, fmax
 
 
 def feret_diameters_px(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -190,18 +223,27 @@ def feret_diameters_px(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
 
     Rotating calipers on the convex hull of the pixel centres, plus one pixel: each pixel
     counts as a disc of unit diameter, so a single pixel is 1 x 1 and an axis-aligned w x l
-    rectangle of pixels is w wide and sqrt((w-1)^2 + (l-1)^2) + 1 long.
+    rectangle of pixels is w wide and sqrt((w-1)^2 + (l-1)^2) + 1 long. Vectorised over all
+    instances: the hull is the convex chain of each row's leftmost pixels plus that of its
+    rightmost ones.
     """
     mask = _check_mask(mask)
     ids, _, lookup = _compact(mask)
-    pts, idx = _run_ends(mask, lookup)
-    order = np.argsort(idx, kind="stable")
-    pts = pts[order]
-    bounds = np.concatenate([[0], np.cumsum(np.bincount(idx, minlength=len(ids)))])
-    fmin = np.empty(len(ids))
-    fmax = np.empty(len(ids))
-    for i in range(len(ids)):
-        fmin[i], fmax[i] = _feret_of_points(pts[bounds[i] : bounds[i + 1]])
+    if not len(ids):
+        return ids, np.zeros(0), np.zeros(0)
+    inst, row, left, right = _row_extremes(mask, lookup)
+    keep_l = _convex_chain(left, row, inst, +1)
+    keep_r = _convex_chain(right, row, inst, -1)
+    # polygon: the left chain downwards, then the right chain upwards
+    g = np.concatenate([inst[keep_l], inst[keep_r]])
+    side = np.concatenate([np.zeros(len(keep_l), np.int64), np.ones(len(keep_r), np.int64)])
+    y = np.concatenate([row[keep_l], -row[keep_r]])
+    x = np.concatenate([left[keep_l], right[keep_r]])
+    order = np.lexsort((y, side, g))
+    pts = np.column_stack([x[order], np.abs(y[order])]).astype(float)
+    counts = np.bincount(g, minlength=len(ids))
+    offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    fmin, fmax = _polygon_feret(pts, offsets, counts)
     return ids, fmin + 1.0, fmax + 1.0
 
 
@@ -304,8 +346,8 @@ def split_instances(
     - seeds: the maxima of the distance map that stand at least `h` (in the distance map's
       units; px for the transform) above the saddle to any higher maximum (h-maxima: regional
       maxima of the map reconstructed from itself lowered by h), which ignores the ripples of a
-      digitised outline; seeds closer than `min_distance` px within one foreground blob are
-      merged into one;
+      digitised outline; seeds whose centres are closer than `min_distance` px within one
+      foreground blob are merged into one;
     - watershed of the negated distance from the seeds, restricted to the foreground; a blob
       without a seed becomes one instance; instances under `min_area_px` pixels are dropped
       and the rest numbered 1..N.
@@ -334,7 +376,7 @@ def split_instances(
     hmax = reconstruction(dist - h, dist, method="dilation") if h > 0 else dist
     seeds, n_seeds = ndimage.label(local_maxima(hmax, connectivity=2) & fg, structure=eight)
     if n_seeds > 1 and min_distance > 0:
-        seeds = _merge_close_seeds(seeds, n_seeds, dist, fg, min_distance)
+        seeds = _merge_close_seeds(seeds, n_seeds, fg, min_distance)
     labels = watershed(-dist, seeds, mask=fg)
     # blobs that got no seed (e.g. flatter than h) become one instance each
     orphans, n_orphans = ndimage.label(fg & (labels == 0), structure=eight)
@@ -343,17 +385,20 @@ def split_instances(
     return _renumber(labels, min_area_px)
 
 
-def _merge_close_seeds(seeds: np.ndarray, n: int, dist: np.ndarray, fg: np.ndarray, min_distance: float) -> np.ndarray:
-    """Give seeds whose peaks lie within `min_distance` px, in one foreground blob, one label."""
+def _merge_close_seeds(seeds: np.ndarray, n: int, fg: np.ndarray, min_distance: float) -> np.ndarray:
+    """Give seeds whose centres lie within `min_distance` px, in one foreground blob, one label."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
-    index = np.arange(1, n + 1)
-    peaks = np.array(ndimage.maximum_position(dist, seeds, index), dtype=float).reshape(-1, 2)
+    r, c = np.nonzero(seeds)
+    k = seeds[r, c] - 1
+    size = np.bincount(k, minlength=n)
+    centres = np.column_stack([np.bincount(k, weights=r, minlength=n), np.bincount(k, weights=c, minlength=n)]) / size[:, None]
+    _, first = np.unique(k, return_index=True)  # one pixel of each seed, to find its blob
     blobs, _ = ndimage.label(fg, structure=np.ones((3, 3), dtype=bool))
-    blob = blobs[peaks[:, 0].astype(int), peaks[:, 1].astype(int)]
-    pairs = cKDTree(peaks).query_pairs(min_distance, output_type="ndarray")
+    blob = blobs[r[first], c[first]]
+    pairs = cKDTree(centres).query_pairs(min_distance, output_type="ndarray")
     pairs = pairs[blob[pairs[:, 0]] == blob[pairs[:, 1]]]
     if not len(pairs):
         return seeds
