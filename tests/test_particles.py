@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from psdfactory import PsdError
-from psdfactory.labels import cumulative_curve, weighted_percentiles
+from psdfactory.psd import cumulative_curve, weighted_percentiles
 from psdfactory.learn.particles import (
     STAT_NAMES,
     THICKNESS_RATIO,

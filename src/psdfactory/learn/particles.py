@@ -64,7 +64,7 @@ blob are merged; watershed on the negated distance restricted to the foreground;
 a seed become one instance each; instances under `min_area_px` are dropped.
 
 From instances to the PSD (`psd_from_instances`): number- and volume-weighted d10/d50/d90 and
-the Q0/Q3 curves, with the labels' own estimators (`psdfactory.labels.weighted_percentiles`,
+the Q0/Q3 curves, with the labels' own estimators (`psdfactory.psd.weighted_percentiles`,
 midpoint convention; `cumulative_curve`), over the included instances. `instance_stats` is the
 fixed-length, NaN-safe feature vector a calibrated read-out fits per image; `match_instances`
 scores a predicted mask against the true one (one-to-one matches at IoU >= 0.5, precision /
@@ -78,8 +78,8 @@ from dataclasses import dataclass, fields
 import numpy as np
 from scipy import ndimage
 
-from psdfactory import PsdError
-from psdfactory.labels import cumulative_curve, weighted_percentiles
+from .. import PsdError
+from ..psd import cumulative_curve, weighted_percentiles
 
 SIEVE_METHODS = ("min_feret", "ellipse_minor")
 DEFAULT_SIEVE_METHOD = "min_feret"
@@ -438,7 +438,7 @@ def psd_from_instances(
 ) -> dict:
     """Number- and volume-weighted d10/d50/d90 (mm) and the Q0/Q3 curves of the included instances.
 
-    Same estimators and key names as the scene labels (`psdfactory.labels.scene_labels`):
+    Same estimators and key names as the scene labels (`psdfactory.scene.labels.scene_labels`):
     `d*_mm` number-weighted, `d*_v_mm` volume-weighted, `psd_q0`/`psd_q3` the cumulative
     fractions at `psd_size_mm`. `include` is a boolean mask over instances (e.g.
     `~m.touches_edge`; default all). `grid_mm` defaults to 32 log-spaced sizes over the included
