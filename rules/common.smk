@@ -96,6 +96,10 @@ def label_params(wildcards):
     return as_json(psd_config.label_params(config))
 
 
+def ceiling_params(wildcards):
+    return as_json(psd_config.ceiling_params(config, wildcards.dataset))
+
+
 def manifest_params(wildcards):
     return as_json(psd_config.manifest_params(config, wildcards.dataset))
 

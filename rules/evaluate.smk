@@ -30,3 +30,22 @@ rule evaluate:
     shell:
         "psdfactory evaluate --params {params.stage:q} --model {input.model:q} --results {params.results:q}"
         " --out-dir {params.out_dir:q} --history {input.history:q} --threads {threads} > {log:q} 2>&1"
+
+
+rule ceiling:
+    """What the dataset's images allow: labels read out from the true sizes of the visible
+    particles (and from the generator's own distribution), cross-validated, per target."""
+    input:
+        scenes=dataset_shards("scenes"),
+        particles=dataset_shards("particles"),
+    output:
+        f"{RESULTS}/{{dataset}}/ceiling.json",
+    params:
+        stage=ceiling_params,
+    log:
+        f"{RESULTS}/{{dataset}}/logs/ceiling.log",
+    conda:
+        "../envs/scene.yaml"
+    shell:
+        "psdfactory ceiling --params {params.stage:q} --dataset {wildcards.dataset} --scenes {input.scenes:q}"
+        " --particles {input.particles:q} --out {output:q} > {log:q} 2>&1"

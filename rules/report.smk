@@ -5,6 +5,7 @@ rule report:
         bench=expand(f"{RESULTS}/bench/{{arch}}.json", arch=ARCHS),
         histories=expand(f"{RESULTS}/models/{{arch}}/history.csv", arch=ARCHS),
         sheets=expand(f"{RESULTS}/{{dataset}}/contact_sheet.png", dataset=DATASETS),
+        ceilings=expand(f"{RESULTS}/{{dataset}}/ceiling.json", dataset=DATASETS),
         manifests=[f for ds in DATASETS for f in shard_files(ds, "scenes")],
         backends=compare_targets(),
     output:
@@ -24,7 +25,7 @@ rule report:
     shell:
         "psdfactory report --params {params.config:q} --metrics {input.metrics:q} --scatters {input.scatter:q}"
         " --histories {input.histories:q} --bench {input.bench:q} --manifests {input.manifests:q}"
-        " --contact-sheets {input.sheets:q} {params.compare:q} --html {output.html:q} --md {output.md:q}"
+        " --contact-sheets {input.sheets:q} --ceilings {input.ceilings:q} {params.compare:q} --html {output.html:q} --md {output.md:q}"
         " > {log:q} 2>&1"
 
 

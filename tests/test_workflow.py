@@ -27,6 +27,9 @@ TINY = {
             "n_scenes": 1, "shard_size": 4, "table_size": 50, "count": [20, 25], "shape": "granule",
             "split": {"test": 1.0}, "size": {"mean": [6, 8], "sigma": [1, 2], "bounds": [1, 10]},
         },
+        # the train dataset's test scene rendered again: by Cycles where Blender is installed
+        "again": {"rerender_of": {"dataset": "train"},
+                  "render": {"backend": "cycles" if COMPARE else "tiny", "light_elevation_deg": [30, 40]}},
     },
     "render": {"resolution": 48},
     "train": {
@@ -47,7 +50,17 @@ def test_tiny_workflow_end_to_end(tmp_path):
     scenes = pq.read_table(res / "train" / "manifest" / "scenes")
     assert sorted(scenes.column("scene_id").to_pylist()) == [f"train-{i:06d}" for i in range(5)]
     assert len(list((res / "train" / "manifest" / "scenes").glob("shard-*.parquet"))) == 3
-    assert sorted(p.name for p in res.iterdir()) == ["bench", "eval", "models", "ood", "report", "train"]
+    assert sorted(p.name for p in res.iterdir()) == ["again", "bench", "eval", "models", "ood", "report", "train"]
+    # the re-render: the train dataset's one test scene, same poses, other renderer, nothing simulated
+    again = pq.read_table(res / "again" / "manifest" / "scenes").to_pylist()
+    test = [r for r in scenes.to_pylist() if r["split"] == "test"]
+    assert len(again) == len(test) == 1 and again[0]["d50_mm"] == test[0]["d50_mm"]
+    assert again[0]["render_backend"] == ("cycles" if COMPARE else "tiny")
+    src = res / "train" / "scenes" / test[0]["scene_id"]
+    assert (res / "again" / "scenes" / "again-000000" / "poses.parquet").read_bytes() == (src / "poses.parquet").read_bytes()
+    assert "takes its settled poses from" in (res / "again" / "logs" / "simulate" / "again-000000.log").read_text()
+    for ds in ("train", "ood", "again"):
+        assert json.loads((res / ds / "ceiling.json").read_text())["n_scenes"] >= 1
     ood = pq.read_table(res / "ood" / "manifest" / "scenes")
     assert ood.column("split").to_pylist() == ["test"] and ood.column("shape_type").to_pylist() == ["granule"]
     parts = pq.read_table(res / "train" / "manifest" / "particles")
@@ -58,12 +71,13 @@ def test_tiny_workflow_end_to_end(tmp_path):
     for arch in ("resnet50", "inception_v3", "efficientnet_b0"):
         assert (res / "models" / arch / "model.pt").is_file()
         metrics = json.loads((res / "eval" / arch / "metrics.json").read_text())
-        assert set(metrics["datasets"]) == {"train", "ood"}
+        assert set(metrics["datasets"]) == {"train", "ood", "again"}
         bench = json.loads((res / "bench" / f"{arch}.json").read_text())
         assert bench["cpu"]["forced_isa"] == "avx2" and not bench["cpu"]["native_bf16"]
         assert {"fp32", "channels_last", "fast"} <= set(bench["results"][0]["paths"])
     html = (res / "report" / "report.html").read_text()
     assert "Inference speed" in html and "efficientnet_b0" in html
+    assert f"R² d50 on {'Cycles' if COMPARE else 'TinyRenderer'} (again) renders" in html
     if COMPARE:
         rows = json.loads((res / "report" / "backends" / "compare.json").read_text())["scenes"]
         assert [r["scene_id"] for r in rows] == ["train-000000", "train-000001"]

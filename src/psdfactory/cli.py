@@ -92,9 +92,24 @@ def cmd_report(a: argparse.Namespace) -> None:
 
     cfg = json.loads(Path(a.config_json).read_text()) if a.config_json else _params(a.params)
     inputs = ReportInputs.from_lists(cfg, a.metrics, a.scatters, a.histories, a.bench, a.manifests,
-                                     a.contact_sheets, a.compare)
+                                     a.contact_sheets, a.compare, a.ceilings)
     build_report(cfg, inputs, Path(a.html), Path(a.md))
     print(f"wrote {a.html} and {a.md}")
+
+
+def cmd_ceiling(a: argparse.Namespace) -> None:
+    from .io import write_json
+    from .learn.ceiling import ceilings_from_manifests
+
+    p = _params(a.params)
+    c = ceilings_from_manifests(a.scenes, a.particles, tuple(p["bounds"]), p["visible_min_px"], p.get("folds", 5))
+    c["dataset"] = a.dataset
+    write_json(Path(a.out), c)
+    for kind in ("visible", "sampling"):
+        if c[kind]:
+            print(f"{a.dataset}: {kind} ceiling R² " + " / ".join(f"{v:.3f}" for v in c[kind].values()))
+    if c.get("note"):
+        print(f"{a.dataset}: {c['note']}")
 
 
 def cmd_predict(a: argparse.Namespace) -> int:
@@ -189,6 +204,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=0)
     p.set_defaults(func=cmd_benchmark)
 
+    p = sub.add_parser("ceiling", help="what a dataset's images allow: cross-validated R² ceilings per target")
+    p.add_argument("--params", required=True, help='JSON: {"bounds": [a, b], "visible_min_px": 1}')
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--scenes", nargs="+", required=True, metavar="PARQUET", help="the dataset's scene manifest shards")
+    p.add_argument("--particles", nargs="+", required=True, metavar="PARQUET", help="its particle manifest shards")
+    p.add_argument("--out", required=True, help="ceiling.json")
+    p.set_defaults(func=cmd_ceiling)
+
     p = sub.add_parser("report", help="the final HTML report and its Markdown twin")
     p.add_argument("--params", default="{}", help="the validated config as JSON")
     p.add_argument("--config-json", help="or: a file holding it")
@@ -201,6 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the scene manifest shards of every dataset")
     p.add_argument("--contact-sheets", nargs="*", default=[], metavar="PNG",
                    help="<dataset>/contact_sheet.png, one per dataset in the config's order (or none)")
+    p.add_argument("--ceilings", nargs="*", default=[], metavar="JSON",
+                   help="<dataset>/ceiling.json, one per dataset in the config's order (or none)")
     p.add_argument("--compare", nargs=2, metavar=("JSON", "PNG"),
                    help="the backend comparison's compare.json and compare.png")
     p.add_argument("--html", required=True)

@@ -277,6 +277,12 @@ def compare_params(config: dict) -> dict:
     return copy.deepcopy(config["render"])
 
 
+def ceiling_params(config: dict, dataset: str) -> dict:
+    """What a dataset's ceiling depends on besides its manifests."""
+    return {"bounds": list(config["datasets"][dataset]["size"]["bounds"]),
+            "visible_min_px": config["labels"]["visible_min_px"]}
+
+
 def manifest_params(config: dict, dataset: str) -> dict:
     return {"split": dict(config["datasets"][dataset]["split"])}
 
