@@ -1,8 +1,85 @@
-"""The report's accuracy table: ceilings lead, per-target R² as a fraction of them, re-render columns."""
+"""The report reads exactly the files it is given (the workflow names every input); its accuracy
+table leads with the ceilings, per-target R² as a fraction of them, and re-render columns."""
 
-from psdfactory.report import accuracy_table, rerenders_of
+import csv
+import json
+import shutil
+
+import pytest
+
+from psdfactory import PsdError
+from psdfactory.manifest import write_shard
+from psdfactory.report import ReportInputs, accuracy_table, build_report, rerenders_of
 
 from .conftest import tiny_config
+
+
+def test_inputs_are_matched_to_the_configured_architectures_and_datasets():
+    cfg = tiny_config()
+    cfg["train"]["architectures"] = ["resnet18", "efficientnet_b0"]
+    two = ["a.json", "b.json"]
+    inputs = ReportInputs.from_lists(cfg, two, ["a.png", "b.png"], ["a.csv", "b.csv"], two, ["s.parquet"],
+                                     ["tiny.png"], ["compare.json", "compare.png"])
+    assert inputs.metrics["efficientnet_b0"].name == "b.json" and inputs.contact_sheets["tiny"].name == "tiny.png"
+    assert inputs.compare[1].name == "compare.png"
+    with pytest.raises(PsdError, match="scatters: 1 files for 2 entries"):
+        ReportInputs.from_lists(cfg, two, ["a.png"], ["a.csv", "b.csv"], two, ["s.parquet"])
+    with pytest.raises(PsdError, match="contact sheets"):
+        ReportInputs.from_lists(cfg, two, ["a.png", "b.png"], ["a.csv", "b.csv"], two, ["s.parquet"], ["x.png", "y.png"])
+
+
+def _fake_results(root, arch: str) -> dict:
+    """The files of a trained, evaluated and benchmarked model, without training one."""
+    (root / "eval").mkdir(parents=True)
+    per = {"r2": 0.5, "mse": 1.0, "mae": 0.8, "rel_err": 0.1}
+    metrics = {"arch": arch, "weights": "none (pretrained: none)", "precision": "fp32",
+               "datasets": {"tiny": {"n": 3, "split": "all", "overall": dict(per), "d10": per, "d50": per, "d90": per,
+                                     "mean_r2": 0.5, "order_violations": 0.0}}}
+    (root / "eval" / "metrics.json").write_text(json.dumps(metrics))
+    speed = {"images_per_s": 10.0, "ms_per_image": 100.0, "batch": 2}
+    bench = {"arch": arch, "weights": "none", "r2_change": 0.0,
+             "cpu": {"summary": "test CPU"},
+             "results": [{"device": "cpu", "input_size": 32, "params_m": 11.2, "gflops": 0.1, "speedup_batched": 1.0,
+                          "fast_key": "fp32", "max_r2_change": 0.005, "skipped": {},
+                          "paths": {"fp32": {"name": "fp32 eager", "batch1": speed, "batched": speed},
+                                    "fast": {"name": "fp32 eager", "batch1": speed, "batched": speed}}}]}
+    (root / "bench.json").write_text(json.dumps(bench))
+    with open(root / "history.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["epoch", "train_loss", "val_loss", "val_mae_mm", "lr", "seconds"])
+        w.writerows([[1, 1.0, 1.2, 0.9, 1e-3, 1.0], [2, 0.5, 0.7, 0.6, 1e-3, 1.0]])
+    return {"metrics": root / "eval" / "metrics.json", "bench": root / "bench.json", "history": root / "history.csv"}
+
+
+@pytest.mark.slow
+def test_report_reads_the_named_files_only(tiny_results, tmp_path):
+    cfg, scenes_root = tiny_results
+    res = tmp_path / "res"
+    shutil.copytree(scenes_root, res)
+    dirs = sorted((res / "tiny" / "scenes").iterdir())
+    m = res / "tiny" / "manifest"
+    shard = m / "scenes" / "shard-00000.parquet"
+    write_shard(dirs[:2], res, {"test": 1.0}, shard, m / "particles" / "shard-00000.parquet")
+    # a stale shard in the same folder (say, from a run with more scenes): not named, not read
+    write_shard(dirs[2:], res, {"test": 1.0}, m / "scenes" / "shard-00001.parquet", m / "particles" / "shard-00001.parquet")
+    files = _fake_results(tmp_path / "model", "resnet18")
+    image = dirs[0] / "image.png"
+    cfg = dict(cfg, train=dict(cfg["train"], architectures=["resnet18"]))
+    inputs = ReportInputs(metrics={"resnet18": files["metrics"]}, scatters={"resnet18": image},
+                          histories={"resnet18": files["history"]}, bench={"resnet18": files["bench"]},
+                          manifests=[shard], contact_sheets={"tiny": image})
+    html, md = tmp_path / "out" / "report.html", tmp_path / "out" / "report.md"
+    build_report(cfg, inputs, html, md)
+    text = md.read_text()
+    assert "| tiny | 2 | 0 | 0 | 2 |" in text  # the two scenes of the named shard, not three
+    assert "![Contact sheet: tiny](figures/contact_sheet_tiny.png)" in text and "| resnet18 |" in text
+    assert (tmp_path / "out" / "figures" / "scatter_resnet18.png").read_bytes() == image.read_bytes()
+    assert "data:image/png;base64," in html.read_text()
+
+    bench = json.loads(files["bench"].read_text())
+    files["bench"].write_text(json.dumps({**bench, "arch": "efficientnet_b0"}))  # another model's benchmark
+    with pytest.raises(PsdError, match="the bench of 'efficientnet_b0', not of 'resnet18'"):
+        build_report(cfg, inputs, html, md)
 
 
 def _metrics(r2s):
