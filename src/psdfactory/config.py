@@ -204,6 +204,7 @@ def semantic_problems(config: dict) -> list[str]:
             problems.append(f"datasets.{name}.count: the cycles backend takes at most 32766 particles "
                             "(Blender's object index tops out at 32767)")
     t = config["train"]
+    _ordered("train.scale_augment", t["scale_augment"], problems)
     if t["dataset"] not in config["datasets"]:
         problems.append(f"train.dataset: {t['dataset']!r} is not one of the configured datasets ({', '.join(config['datasets'])})")
     else:
@@ -313,7 +314,7 @@ def shard_batches(config: dict, dataset: str, shard: int) -> range:
 def train_params(config: dict, arch: str) -> dict:
     t = config["train"]
     keys = ("dataset", "pretrained", "epochs", "batch_size", "lr", "weight_decay", "lr_factor", "lr_patience",
-            "early_stopping_patience", "precision", "device", "aux_loss_weight", "augment")
+            "early_stopping_patience", "precision", "device", "aux_loss_weight", "augment", "scale_augment", "photometric")
     out = {k: t[k] for k in keys}
     out.update(arch=arch, seed=config["seed"], input_size=int(t["input_size"].get(arch, DEFAULT_INPUT_SIZE.get(arch, 224))))
     return out

@@ -44,17 +44,6 @@ def normalise(batch_u8: torch.Tensor) -> torch.Tensor:
     return (batch_u8.float() / 255.0 - mean) / std
 
 
-def augment_d4(batch: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
-    """Random 90° rotations and flips (the dihedral group of the square), per image."""
-    out = torch.empty_like(batch)
-    k = torch.randint(0, 4, (len(batch),), generator=gen)
-    flip = torch.randint(0, 2, (len(batch),), generator=gen)
-    for i in range(len(batch)):
-        x = torch.rot90(batch[i], int(k[i]), dims=(1, 2))
-        out[i] = torch.flip(x, dims=(2,)) if flip[i] else x
-    return out
-
-
 class SceneImages(torch.utils.data.Dataset):
     """Scenes of a manifest as (uint8 image at the model's input size, targets in mm).
 

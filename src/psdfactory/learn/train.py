@@ -20,7 +20,8 @@ from torch import nn
 
 from .. import PsdError, __version__
 from ..io import atomic_path
-from .data import SceneImages, augment_d4, manifest_rows, normalise
+from .augment import augment_d4, photometric, rescale
+from .data import SceneImages, manifest_rows, normalise
 from .models import TargetStats, build_model, count_parameters, input_size
 from .runtime import autocast, faster_cpu_precision, loss_fn, pick_device, pick_precision, predict_batches, save_model
 
@@ -42,6 +43,8 @@ class TrainParams:
     device: str = "auto"
     aux_loss_weight: float = 0.4
     augment: bool = True
+    scale_augment: tuple[float, float] = (1.0, 1.0)
+    photometric: float = 0.0
     seed: int = 0
 
     @classmethod
@@ -72,12 +75,16 @@ class History:
                 w.writerow({k: r[k] for k in keys})
 
 
-def run_epoch(model, loader, stats, opt, device, precision, aux_weight, gen, augment, bar=None) -> float:
+def run_epoch(model, loader, stats, opt, device, precision, aux_weight, gen, params: TrainParams, bar=None) -> float:
     model.train()
     total, n = 0.0, 0
     for x, y in loader:
-        if augment:
+        if params.augment:
             x = augment_d4(x, gen)
+        if tuple(params.scale_augment) != (1.0, 1.0):
+            x, y = rescale(x, y, tuple(params.scale_augment), gen)
+        if params.photometric > 0:
+            x = photometric(x, gen, params.photometric)
         x = normalise(x.to(device)).contiguous(memory_format=torch.channels_last)
         y = y.to(device)
         with autocast(device, precision):
@@ -172,7 +179,7 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, log=print) -> 
         t0 = time.perf_counter()
         with tqdm(total=len(train_ds), desc=f"{params.arch} epoch {epoch + 1}/{params.epochs}", unit="img",
                   mininterval=2.0, leave=True) as bar:
-            train_loss = run_epoch(model, train_loader, stats, opt, device, precision, params.aux_loss_weight, gen, params.augment, bar)
+            train_loss = run_epoch(model, train_loader, stats, opt, device, precision, params.aux_loss_weight, gen, params, bar)
         pred, y = predict_batches(model, val_loader, device, precision)
         val_loss = float(nn.functional.mse_loss(stats.standardise(pred), stats.standardise(y)))
         val_mae = float((pred - y).abs().mean())

@@ -1,0 +1,111 @@
+"""Training augmentations that keep the labels true.
+
+- ``augment_d4``: 90° rotations and flips — a top-down bed has no preferred orientation.
+- ``rescale``: magnify or shrink an image by s at the same mm per pixel. Every particle then
+  looks s times larger (or smaller), so the labels in mm are multiplied by s — exact up to the
+  pixel rounding of the crop (the factor applied is the one the integer crop really gives).
+  Magnifying crops the centre-ish of the bed (a random window of side S/s, resized to S); shrinking
+  resizes to S·s and fills the frame by mirroring the image at its edges (the bed goes on).
+- ``photometric``: what a camera and its light do to an image but not to the particles — gain,
+  contrast, gamma, white balance, colour saturation, a grey image, blur and sensor noise — so a
+  model learns sizes, not one renderer's colours.
+
+All take and return uint8 N×3×S×S batches (rescale also the N×3 labels), draw from a
+``torch.Generator`` (reproducible), and run per image on the CPU in a few ms.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch.nn import functional as F
+
+
+def augment_d4(batch: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """Random 90° rotations and flips (the dihedral group of the square), per image."""
+    out = torch.empty_like(batch)
+    k = torch.randint(0, 4, (len(batch),), generator=gen)
+    flip = torch.randint(0, 2, (len(batch),), generator=gen)
+    for i in range(len(batch)):
+        x = torch.rot90(batch[i], int(k[i]), dims=(1, 2))
+        out[i] = torch.flip(x, dims=(2,)) if flip[i] else x
+    return out
+
+
+def _resize(img: torch.Tensor, size: int) -> torch.Tensor:
+    """float 3×H×W → 3×size×size (antialiased bilinear)."""
+    return F.interpolate(img[None], size=(size, size), mode="bilinear", antialias=True, align_corners=False)[0]
+
+
+def rescale_one(img: torch.Tensor, s: float, gen: torch.Generator) -> tuple[torch.Tensor, float]:
+    """One uint8 3×S×S image magnified by about `s` (same size out) → (image, the exact factor)."""
+    size = img.shape[-1]
+    x = img.float()
+    if s >= 1.0:
+        c = max(8, min(size, round(size / s)))
+        r0, c0 = (int(torch.randint(0, size - c + 1, (1,), generator=gen)) for _ in range(2))
+        out = _resize(x[:, r0 : r0 + c, c0 : c0 + c], size)
+        factor = size / c
+    else:
+        r = max(8, min(size, round(size * s)))
+        small = _resize(x, r)
+        pad = size - r
+        top, left = (int(torch.randint(0, pad + 1, (1,), generator=gen)) for _ in range(2))
+        # mirrored at the edges: one reflection suffices for s > 1/2 (each pad is shorter than r)
+        out = F.pad(small[None], (left, pad - left, top, pad - top), mode="reflect")[0]
+        factor = r / size
+    return out.round().clamp(0, 255).to(torch.uint8), factor
+
+
+def rescale(batch: torch.Tensor, y_mm: torch.Tensor, scale: tuple[float, float],
+            gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each image magnified by s, log-uniform in [lo, hi] (1/2 < lo ≤ hi), and its labels
+    multiplied by the factor the crop really applies."""
+    lo, hi = scale
+    if not 0.5 < lo <= hi:
+        raise ValueError(f"scale range {scale}: needs 1/2 < lo <= hi")
+    if lo == hi == 1.0:
+        return batch, y_mm
+    u = torch.rand(len(batch), generator=gen)
+    s = torch.exp(torch.log(torch.tensor(lo)) + u * (torch.log(torch.tensor(hi)) - torch.log(torch.tensor(lo))))
+    out = torch.empty_like(batch)
+    y = y_mm.clone()
+    for i in range(len(batch)):
+        out[i], f = rescale_one(batch[i], float(s[i]), gen)
+        y[i] = y_mm[i] * f
+    return out, y
+
+
+def photometric(batch: torch.Tensor, gen: torch.Generator, strength: float = 1.0) -> torch.Tensor:
+    """Camera and light changes, drawn per image; `strength` 0 = none, 1 = the default ranges."""
+    if strength <= 0:
+        return batch
+    n = len(batch)
+
+    def u(lo: float, hi: float, shape=(n,)) -> torch.Tensor:
+        return lo + (hi - lo) * torch.rand(shape, generator=gen)
+
+    x = batch.float() / 255.0
+    gain = torch.exp(u(-0.5, 0.5) * strength).view(n, 1, 1, 1)
+    wb = torch.exp(u(-0.15, 0.15, (n, 3)) * strength).view(n, 3, 1, 1)
+    x = x * gain * wb
+    mean = x.mean(dim=(1, 2, 3), keepdim=True)
+    x = mean + (x - mean) * torch.exp(u(-0.4, 0.4) * strength).view(n, 1, 1, 1)  # contrast
+    grey = x.mean(dim=1, keepdim=True)
+    sat = torch.exp(u(-1.0, 0.7) * strength).view(n, 1, 1, 1)
+    x = grey + (x - grey) * sat
+    to_grey = (torch.rand(n, generator=gen) < 0.2 * strength).view(n, 1, 1, 1)
+    x = torch.where(to_grey, x.mean(dim=1, keepdim=True).expand_as(x), x)
+    x = x.clamp(0, 1) ** torch.exp(u(-0.4, 0.4) * strength).view(n, 1, 1, 1)  # gamma
+    sigma = u(0.0, 1.2 * strength)
+    for i in range(n):  # defocus: a small Gaussian blur, some images only
+        if sigma[i] > 0.4:
+            k = torch.arange(-2, 3, dtype=torch.float32)
+            w = torch.exp(-(k**2) / (2 * float(sigma[i]) ** 2))
+            w = (w / w.sum()).view(1, 1, 1, 5)
+            xi = x[i : i + 1].transpose(0, 1)  # 3×1×H×W: one channel at a time
+            xi = F.conv2d(F.pad(xi, (2, 2, 0, 0), mode="reflect"), w)
+            xi = F.conv2d(F.pad(xi, (0, 0, 2, 2), mode="reflect"), w.transpose(2, 3))
+            x[i] = xi.transpose(0, 1)[0]
+    noise = u(0.0, 0.03 * strength).view(n, 1, 1, 1)
+    x = x + noise * torch.randn(x.shape, generator=gen)
+    return (x.clamp(0, 1) * 255.0).round().to(torch.uint8)
