@@ -1,0 +1,98 @@
+#!/usr/bin/env python
+"""Training-recipe ablation: train one architecture with each recipe step added in turn, and
+print its per-target R² in domain (the dataset's test split) and across renderers (re-render
+datasets of the same test scenes), each beside the dataset's visible-particle ceiling.
+
+Needs a results root with the datasets' manifests (e.g. after `snakemake -j2 scenes` on the
+default config, plus the `train_cycles` re-render):
+
+    .venv/bin/python bench/recipe_ablation.py --results results --config config/config.yaml \
+        --arch efficientnet_b0 --steps baseline scale photometric scale+photometric --out bench/out/ablation.json
+
+Each step trains from scratch with the config's training settings plus the step's overrides
+(seeded: the same step gives the same figures on the same machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+STEPS = {  # name → train-setting overrides
+    "baseline": {},
+    "scale": {"scale_augment": [0.8, 1.25]},
+    "photometric": {"photometric": 1.0},
+    "scale+photometric": {"scale_augment": [0.8, 1.25], "photometric": 1.0},
+}
+
+
+def main() -> None:
+    import torch
+
+    from psdfactory import config as psd_config
+    from psdfactory.learn.capability import detect
+    from psdfactory.learn.ceiling import ceilings_from_manifests
+    from psdfactory.learn.evaluate import evaluate
+    from psdfactory.learn.train import TrainParams, train
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--results", required=True)
+    ap.add_argument("--config", default="config/config.yaml")
+    ap.add_argument("--arch", default="efficientnet_b0")
+    ap.add_argument("--steps", nargs="+", default=list(STEPS), choices=list(STEPS))
+    ap.add_argument("--epochs", type=int, help="override train.epochs")
+    ap.add_argument("--threads", type=int, default=0)
+    ap.add_argument("--work", default="bench/out/ablation", help="models are written here")
+    ap.add_argument("--out", help="write the figures to this JSON file")
+    a = ap.parse_args()
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    cfg = psd_config.load_config(Path(a.config))
+    root = Path(a.results)
+    ds = cfg["train"]["dataset"]
+    evals = [d for d in cfg["datasets"] if (root / d / "manifest" / "scenes").is_dir()]
+    print(f"CPU: {detect().summary()}; {torch.get_num_threads()} threads")
+    ceilings = {}
+    for d in evals:
+        m = root / d / "manifest"
+        c = ceilings_from_manifests(sorted((m / "scenes").glob("*.parquet")), sorted((m / "particles").glob("*.parquet")),
+                                    tuple(cfg["datasets"][d]["size"]["bounds"]), cfg["labels"]["visible_min_px"])
+        ceilings[d] = c["visible"]
+        if c["visible"]:
+            print(f"{d}: visible-particle ceiling R² " + " / ".join(f"{v:.3f}" for v in c["visible"].values()))
+    out = {"arch": a.arch, "ceilings": ceilings, "steps": {}}
+    for step in a.steps:
+        p = psd_config.train_params(cfg, a.arch)
+        p.update(STEPS[step])
+        if a.epochs:
+            p["epochs"] = a.epochs
+        work = Path(a.work) / step
+        t0 = time.perf_counter()
+        train(TrainParams.from_dict(p), root, work)
+        minutes = (time.perf_counter() - t0) / 60
+        res = evaluate(work / "model.pt", root, evals, work / "eval", precision="fp32")
+        out["steps"][step] = {"overrides": STEPS[step], "train_minutes": minutes,
+                              "r2": {d: {n: res["datasets"][d][n]["r2"] for n in ("d10", "d50", "d90")} for d in evals}}
+        print(f"== {step}: trained in {minutes:.1f} min")
+        if a.out:
+            Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+            Path(a.out).write_text(json.dumps(out, indent=1))
+
+    print(f"\n{a.arch}: per-target R² d10 / d50 / d90 (fraction of the visible-particle ceiling)")
+    print("| step | " + " | ".join(evals) + " | train min |")
+    print("|---|" + "---|" * (len(evals) + 1))
+    for step, r in out["steps"].items():
+        cells = []
+        for d in evals:
+            c = ceilings.get(d) or {}
+            cells.append(" / ".join(f"{r['r2'][d][n]:.2f}" + (f" ({100 * r['r2'][d][n] / c[n + '_mm']:.0f} %)"
+                                                                if c.get(n + "_mm", 0) > 0 else "")
+                                    for n in ("d10", "d50", "d90")))
+        print(f"| {step} | " + " | ".join(cells) + f" | {r['train_minutes']:.1f} |")
+    print(f"(training dataset: {ds})")
+
+
+if __name__ == "__main__":
+    main()
