@@ -273,6 +273,35 @@ def test_load_model_rejects_other_files(tmp_path):
         load_model(tmp_path / "none.pt")
 
 
+class _WritesAFile:
+    """Unpickling this calls open(path, "w"): a stand-in for code hidden in a model file."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (open, (self.path, "w"))
+
+
+def test_a_crafted_model_file_is_refused_and_runs_nothing(tmp_path, capsys):
+    from psdfactory.cli import main
+    from psdfactory.learn.runtime import load_model
+
+    victim = tmp_path / "pwned.txt"
+    evil = tmp_path / "model.pt"
+    torch.save({"meta": {"arch": "resnet18"}, "state_dict": {}, "payload": _WritesAFile(victim)}, evil)
+    assert not victim.exists()
+    with pytest.raises(PsdError, match="refused: it holds Python objects.*weights_only=True"):
+        load_model(evil)
+    img = tmp_path / "a.png"
+    from PIL import Image
+
+    Image.new("RGB", (32, 32)).save(img)
+    assert main(["predict", "--model", str(evil), str(img)]) == 2
+    assert "refused" in capsys.readouterr().err
+    assert not victim.exists()  # nothing in the file ran
+
+
 def test_fast_path_is_the_fastest_within_the_accuracy_budget():
     from psdfactory.deploy.benchmark import choose_fast
 
@@ -385,3 +414,20 @@ def test_predict_finds_images_in_subfolders_and_skips_masks(tmp_path):
     found = [str(p.relative_to(tmp_path)) for p in expand_inputs([str(tmp_path)])]
     assert found == ["a/scenes/s1/image.png", "a/scenes/s2/image.png", "b.jpg"]
     assert expand_inputs([str(tmp_path / "a/scenes/s1/mask.png")]) == [tmp_path / "a/scenes/s1/mask.png"]  # named: kept
+
+
+def test_onnx_meta_json_with_wrong_types_is_refused(tmp_path):
+    from psdfactory.deploy.predict import load_predictor, meta_problems
+
+    good = {"arch": "resnet18", "input_size": 32, "image_resolution": 32, "mm_per_px": 0.5}
+    assert meta_problems(good) == []
+    assert meta_problems([1, 2]) == ["it must hold a JSON object"]
+    bad = {**good, "input_size": "32", "mm_per_px": -1}
+    assert [p.split(" ")[0] for p in meta_problems(bad)] == ["input_size", "mm_per_px"]
+    (tmp_path / "model.onnx").write_bytes(b"not onnx")
+    (tmp_path / "meta.json").write_text(json.dumps(bad))
+    with pytest.raises(PsdError, match="meta.json refused: input_size is missing or not valid"):
+        load_predictor(tmp_path / "model.onnx")
+    (tmp_path / "meta.json").write_text("{oops")
+    with pytest.raises(PsdError, match="not readable JSON"):
+        load_predictor(tmp_path / "model.onnx")

@@ -50,6 +50,20 @@ def prepare(image: np.ndarray, meta: dict, mm_per_px: float | None) -> torch.Ten
     return t.round().clamp(0, 255).to(torch.uint8)
 
 
+def meta_problems(meta: object) -> list[str]:
+    """What is wrong with an exported model's meta.json (the keys predict relies on, their types
+    and sane ranges); empty when it is fine."""
+    if not isinstance(meta, dict):
+        return ["it must hold a JSON object"]
+    checks = {
+        "arch": lambda v: isinstance(v, str) and 0 < len(v) < 100,
+        "input_size": lambda v: isinstance(v, int) and not isinstance(v, bool) and 16 <= v <= 4096,
+        "image_resolution": lambda v: isinstance(v, int) and not isinstance(v, bool) and 16 <= v <= 65536,
+        "mm_per_px": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < 1e4,
+    }
+    return [f"{k} is missing or not valid (got {meta.get(k)!r})" for k, ok in checks.items() if not ok(meta.get(k))]
+
+
 def load_predictor(model_path: Path, device: str = "cpu"):
     """→ (function: normalised float N×3×S×S tensor → N×3 mm array, meta). A `model.pt` runs in
     PyTorch; an exported `.onnx` (fp32 or int8, with the export's meta.json beside it) runs in
@@ -67,7 +81,13 @@ def load_predictor(model_path: Path, device: str = "cpu"):
             raise PsdError(f"model file not found: {model_path}")
         if not meta_path.is_file():
             raise PsdError(f"{meta_path} is missing: an ONNX model needs the meta.json that `psdfactory export` writes beside it")
-        meta = json.loads(meta_path.read_text())
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise PsdError(f"{meta_path} is not readable JSON ({e})") from None
+        problems = meta_problems(meta)
+        if problems:
+            raise PsdError(f"{meta_path} refused: " + "; ".join(problems))
         ort = OrtModel(model_path, torch.get_num_threads())
         return (lambda x: ort(x.numpy())), meta
     from ..learn.runtime import load_model, pick_device

@@ -102,12 +102,30 @@ def save_model(path: Path, model: nn.Module, meta: dict) -> None:
         torch.save({"meta": meta, "state_dict": state}, tmp)
 
 
-def load_model(path: Path, device: torch.device | str = "cpu") -> tuple[nn.Module, dict]:
+def load_checkpoint(path: Path, what: str = "psdfactory model") -> dict:
+    """A file written by torch.save, loaded with ``weights_only=True``: tensors and plain data
+    only. A file that holds other Python objects (which unpickling would construct, and so could
+    run code) is refused, and nothing in it is run."""
+    import pickle
+
     path = Path(path)
     if not path.is_file():
-        raise PsdError(f"model file not found: {path}")
+        raise PsdError(f"{what} file not found: {path}")
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise PsdError(f"{path} refused: it holds Python objects, not just tensors and plain data, and loading it "
+                       f"could run code ({first[:160]}); psdfactory loads model files with weights_only=True "
+                       "— use a model.pt that psdfactory wrote") from None
+    except Exception as e:
+        raise PsdError(f"{path} is not a {what} ({type(e).__name__}: {e})") from None
+
+
+def load_model(path: Path, device: torch.device | str = "cpu") -> tuple[nn.Module, dict]:
+    path = Path(path)
+    ckpt = load_checkpoint(path)
+    try:
         meta = ckpt["meta"]
         stats = TargetStats(**meta["target_stats"])
         model, _ = build_model(meta["arch"], stats, "none", size=meta["input_size"], log=lambda m: None)

@@ -23,7 +23,8 @@ from ..io import atomic_path
 from .augment import augment_d4, photometric, rescale
 from .data import SceneImages, manifest_rows, normalise
 from .models import TargetStats, build_model, count_parameters, input_size
-from .runtime import autocast, faster_cpu_precision, loss_fn, pick_device, pick_precision, predict_batches, save_model
+from .runtime import (autocast, faster_cpu_precision, load_checkpoint, loss_fn, pick_device, pick_precision,
+                      predict_batches, save_model)
 
 
 @dataclass(frozen=True)
@@ -140,7 +141,7 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, log=print) -> 
     history = History()
     start_epoch, best, best_epoch, stale = 0, math.inf, -1, 0
     if last_path.is_file():
-        ck = torch.load(last_path, map_location="cpu", weights_only=False)
+        ck = load_checkpoint(last_path, "training checkpoint")
         if ck.get("fingerprint") == fp:
             model.load_state_dict(ck["model"])
             opt.load_state_dict(ck["optimizer"])
@@ -212,7 +213,7 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, log=print) -> 
     tb.close()
     if best_epoch < 0:
         raise PsdError("no epoch was trained (train.epochs must be ≥ 1)")
-    best_ckpt = torch.load(ckpt_dir / "best.pt", map_location="cpu", weights_only=False)
+    best_ckpt = load_checkpoint(ckpt_dir / "best.pt", "training checkpoint")
     summary = {**best_ckpt["meta"], "best_epoch": best_epoch, "epochs_run": len(history.rows), "stop_reason": stop_reason,
                "precision": precision, "device": str(device)}
     with atomic_path(out_dir / "model.pt") as tmp:
