@@ -212,46 +212,22 @@ def missing_scene_files(ds):
     """Files missing from scene folders that exist: deleted by hand, so name them as targets.
 
     Snakemake does not remake a missing intermediate file whose downstream outputs are up to
-    date, so a deleted image would otherwise stay deleted. Only the missing ones are listed, so
-    the target rule does not carry every file of every scene as an input.
+    date, so a deleted image would otherwise stay deleted. Naming it as a target makes the scene's
+    own stage rule (`render` for an image — in batch mode too) regenerate it, identical, and
+    nothing else: no file is removed to force a rerun, so a dry run changes nothing. Only the
+    main process looks (the jobs Snakemake starts re-parse this file and need no targets): one
+    stat per scene folder and file, once per invocation.
     """
+    if not workflow.is_main_process:
+        return []
     missing = []
     for i in range(config["datasets"][ds]["n_scenes"]):
         d = f"{RESULTS}/{ds}/scenes/{scene_id(ds, i)}"
         if os.path.isdir(d):
             missing += [f"{d}/{f}" for f in SCENE_FILES if not os.path.exists(f"{d}/{f}")]
+    for f in missing:
+        print(f"psdfactory: {f} is missing; its stage will regenerate it", file=sys.stderr)
     return missing
-
-
-def batches_to_repair(ds):
-    """Batches with scene files deleted by hand, as {stamp: first missing file}: for each scene
-    folder with a missing file, the stamp of the first stage whose output is missing (the
-    stages after it follow by modification time)."""
-    repair = {}
-    for i in range(config["datasets"][ds]["n_scenes"]):
-        d = f"{RESULTS}/{ds}/scenes/{scene_id(ds, i)}"
-        if not os.path.isdir(d):
-            continue
-        for stage, st in STAGES.items():
-            gone = [f for f in st.outputs if not os.path.exists(f"{d}/{f}")]
-            if gone:
-                batch = i // config["scenes_per_job"]
-                repair.setdefault(batch_stamp_of(ds, stage, batch), f"{d}/{gone[0]}")
-                break
-    return repair
-
-
-def repair_targets(ds):
-    """The stamps of batches to repair, as targets. A stamp that vouches for missing files is
-    wrong, so it is removed (Snakemake cannot be told otherwise that it is out of date): the
-    batch then reruns and regenerates only the missing scenes. Removed only in the main
-    process, not in the jobs that Snakemake runs remotely (they re-parse this file)."""
-    repair = batches_to_repair(ds)
-    for stamp, missing in repair.items():
-        if os.path.exists(stamp) and workflow.is_main_process:
-            print(f"psdfactory: {missing} is missing; removing {stamp} so that batch reruns", file=sys.stderr)
-            os.remove(stamp)
-    return list(repair)
 
 
 def scene_targets():
@@ -260,7 +236,7 @@ def scene_targets():
     for ds in DATASETS:
         targets += shard_files(ds, "scenes") + shard_files(ds, "particles")
         targets.append(f"{RESULTS}/{ds}/contact_sheet.png")
-        targets += repair_targets(ds) if BATCHED else missing_scene_files(ds)
+        targets += missing_scene_files(ds)
     return targets
 
 

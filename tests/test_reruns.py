@@ -104,6 +104,33 @@ def test_deleted_image_regenerates_that_scene_only(built, tmp_path):
     assert planned_wildcards(r, "manifest_shard") == ["dataset=a, shard=00000"]
 
 
+def test_a_dry_run_changes_nothing_in_any_state(built, built_batched, tmp_path):
+    """Fresh, partial (a manifest shard gone), and with a scene file deleted by hand, in both
+    modes: `snakemake -n` plans the repair and writes, removes or touches nothing."""
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    dry(fresh, built[1])
+    assert sorted(p.name for p in fresh.iterdir() if p.name != ".snakemake") == ["edited.yaml"]
+    for i, (src, cfg) in enumerate((built, built_batched)):
+        work = own_copy(src, tmp_path / f"work{i}")
+        results = work / "results"
+        (results / "a" / "scenes" / "a-000001" / "image.png").unlink()
+        (results / "b" / "manifest" / "scenes" / "shard-00000.parquet").unlink()
+        tree = tree_digest(results)
+        jobs, r = dry(work, cfg)
+        assert tree_digest(results) == tree
+        assert planned_wildcards(r, "render") == ["dataset=a, scene=a-000001"]
+        assert jobs["manifest_shard"] >= 1
+
+
+def tree_digest(root):
+    """Every file under root with its size, mtime and content hash."""
+    import hashlib
+
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns, hashlib.sha256(p.read_bytes()).hexdigest())
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
 # ---- scenes_per_job > 1: batch jobs that skip up-to-date scenes ----------------------------
 
 BATCH_RULES = ("sample_batch", "simulate_batch", "render_batch", "label_batch")
@@ -144,10 +171,12 @@ def test_batched_reruns_regenerate_only_the_scenes_that_changed(built_batched, t
     before_bytes = image.read_bytes()
     before = scene_mtimes(results, "a")
     image.unlink()
+    tree = tree_digest(results)
     jobs, r = dry(work, cfg)
+    assert tree_digest(results) == tree  # a dry run changes nothing (it used to remove a stamp)
     assert "a-000001/image.png is missing" in r.stderr
-    assert planned_wildcards(r, "render_batch") == ["dataset=a, batch=00000"]
-    assert jobs["sample_batch"] == 0 and jobs["simulate_batch"] == 0
+    assert planned_wildcards(r, "render") == ["dataset=a, scene=a-000001"]  # that scene's own render job
+    assert not any(jobs[rule] for rule in BATCH_RULES)
     r = snakemake("-j2", "scenes", "--configfile", str(work / "edited.yaml"), workdir=work)
     assert r.returncode == 0, r.stderr[-3000:]
     assert image.read_bytes() == before_bytes  # regenerated, identical
