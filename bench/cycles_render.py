@@ -13,8 +13,6 @@ Cycles uses every core it sees (here: the CPU; a GPU when one is present).
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import shutil
 import statistics
@@ -45,9 +43,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(a.scenes):
             d = Path(tmp) / f"train-{i:06d}"
-            with contextlib.redirect_stdout(io.StringIO()):
-                spec = run_sample(psd_config.sample_params(cfg, "train", i), d)
-                run_simulate(psd_config.simulate_params(cfg), d)
+            spec = run_sample(psd_config.sample_params(cfg, "train", i), d)  # (their log records: not shown)
+            run_simulate(psd_config.simulate_params(cfg), d)
             row = {"n": spec["samplesize"]}
             masks = {}
             for backend in ("tiny", "cycles"):
@@ -55,8 +52,7 @@ def main() -> None:
                 shutil.copytree(d, b)
                 params = psd_config.render_params({**cfg, "render": {**cfg["render"], "backend": backend}})
                 t0 = time.perf_counter()
-                with contextlib.redirect_stdout(io.StringIO()):
-                    run_render(params, b)
+                run_render(params, b)
                 row[backend] = time.perf_counter() - t0
                 masks[backend] = read_png(b / "mask.png")
                 if backend == "cycles":

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import torch
 
+from psdfactory.cli import configure_logging
 from psdfactory.deploy.benchmark import benchmark, benchmark_model
 from psdfactory.learn.capability import detect
 from psdfactory.learn.models import TargetStats, build_model
@@ -37,6 +38,7 @@ def main() -> None:
     ap.add_argument("--results", help="results root of a workflow run, for the accuracy of the fast path")
     ap.add_argument("--json", help="also write the figures to this file")
     a = ap.parse_args()
+    configure_logging()  # the benchmark's per-path lines, on stderr
 
     stats = TargetStats([2.0, 9.0, 16.0], [1.0, 1.0, 1.0], [2.0, 7.0, 7.0], [1.0, 1.0, 1.0])
     rows, out = [], {}
@@ -45,7 +47,7 @@ def main() -> None:
     print(f"CPU threads: {torch.get_num_threads()}; batch {a.batch}; medians of {a.repeats} runs of ~{a.seconds} s")
     for arch in a.archs:
         size = SIZES.get(arch, 224)
-        model, _ = build_model(arch, stats, "none", size=size, log=lambda m: None)
+        model, _ = build_model(arch, stats, "none", size=size)
         print(f"{arch} at {size} px:")
         r = benchmark_model(model.eval(), {"input_size": size}, dev, None, None, a.batch, a.seconds, a.repeats)
         out[arch] = r

@@ -32,6 +32,7 @@ def main() -> None:
     import torch
 
     from psdfactory import config as psd_config
+    from psdfactory.cli import configure_logging
     from psdfactory.learn.capability import detect
     from psdfactory.learn.ceiling import ceilings_from_manifests
     from psdfactory.learn.evaluate import evaluate
@@ -47,6 +48,7 @@ def main() -> None:
     ap.add_argument("--work", default="bench/out/ablation", help="models are written here")
     ap.add_argument("--out", help="write the figures to this JSON file")
     a = ap.parse_args()
+    configure_logging()  # training's epoch lines and progress bars, on stderr
     if a.threads:
         torch.set_num_threads(a.threads)
     cfg = psd_config.load_config(Path(a.config))

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import pytest
@@ -8,6 +9,16 @@ from psdfactory import config as psd_config
 from psdfactory.scene.stages import run_label, run_render, run_sample, run_simulate
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True)
+def _psdfactory_log_level_restored():
+    """`psdfactory.cli.main` sets the package's log level (--quiet, --verbose): put it back after
+    each test, so that no test depends on what an earlier one ran."""
+    logger = logging.getLogger("psdfactory")
+    level = logger.level
+    yield
+    logger.setLevel(level)
 
 
 def tiny_config(**dataset_overrides) -> dict:

@@ -76,3 +76,36 @@ def test_show_contact_sheet(tiny_results, tmp_path):
 
     with Image.open(out) as im:
         assert im.size[0] > 300 and im.size[1] > 300
+
+
+def _log_lines(err: str, level: str) -> list[str]:
+    return [line for line in err.splitlines() if f" {level} psdfactory.scene.stages: " in line]
+
+
+@pytest.mark.parametrize("flags, shown, hidden", [([], ["INFO", "WARNING"], ["DEBUG"]),
+                                                  (["--quiet"], ["WARNING"], ["INFO", "DEBUG"]),
+                                                  (["-v"], ["DEBUG", "INFO", "WARNING"], [])])
+def test_log_levels_flags_and_format(tmp_path, capsys, flags, shown, hidden):
+    import logging
+    import re
+
+    assert main([*flags, "check-config", str(tmp_path / "none.yaml")]) == 2  # configures logging, then fails
+    log = logging.getLogger("psdfactory.scene.stages")  # any module's logger
+    for level in ("DEBUG", "INFO", "WARNING"):
+        log.log(getattr(logging, level), f"a {level.lower()} record")
+    out, err = capsys.readouterr()
+    assert out == ""  # log records go to stderr (the rules send it to the job's log file)
+    assert "psdfactory check-config: error: config file not found" in err  # the verdict, at any level
+    for level in shown:
+        (line,) = _log_lines(err, level)
+        assert re.match(rf"\d{{4}}-\d\d-\d\d \d\d:\d\d:\d\d {level} psdfactory\.scene\.stages: a {level.lower()} record$",
+                        line), line
+    for level in hidden:
+        assert not _log_lines(err, level)
+    assert bool(re.search(r"DEBUG psdfactory\.cli: psdfactory .*arguments", err)) == ("DEBUG" in shown)
+
+
+def test_quiet_and_verbose_exclude_each_other(capsys):
+    with pytest.raises(SystemExit):
+        main(["-q", "-v", "check-config", "x.yaml"])
+    assert "not allowed with" in capsys.readouterr().err

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import logging
 import os
 import shutil
 import stat
@@ -136,7 +137,7 @@ def test_cycles_settings_do_not_rerun_the_fast_backend():
 
 @slow
 @needs_blender
-def test_a_batch_of_cycles_renders_runs_one_scene_at_a_time(tiny_results, tmp_path, capsys):
+def test_a_batch_of_cycles_renders_runs_one_scene_at_a_time(tiny_results, tmp_path, caplog):
     from psdfactory.scene.stages import run_scenes
 
     cfg, root = tiny_results
@@ -146,8 +147,9 @@ def test_a_batch_of_cycles_renders_runs_one_scene_at_a_time(tiny_results, tmp_pa
         shutil.copytree(root / "tiny" / "scenes" / f"tiny-{i:06d}", d)
         dirs.append(d)
     params = psd_config.render_params(cycles_config(cfg))
+    caplog.set_level(logging.INFO, logger="psdfactory")
     summary = run_scenes("render", params, dirs, skip_up_to_date=True, jobs=2)
     assert sorted(summary["ran"]) == [d.name for d in dirs]
-    assert "run one at a time" in capsys.readouterr().out
+    assert any("run one at a time" in m for m in caplog.messages)
     assert all(read_json(d / "render.json")["backend"] == "cycles" for d in dirs)
     assert run_scenes("render", params, dirs, skip_up_to_date=True)["ran"] == []  # now up to date

@@ -1,3 +1,4 @@
+import logging
 import urllib.error
 
 import pytest
@@ -32,7 +33,7 @@ def test_head_starts_at_training_means():
 
 @pytest.mark.parametrize("arch,size", [("resnet18", 64), ("efficientnet_b0", 64), ("mobilenet_v3_small", 64), ("inception_v3", 75)])
 def test_models_regress_three_ordered_mm_values(arch, size):
-    model, used = build_model(arch, STATS, "none", size=size, log=lambda m: None)
+    model, used = build_model(arch, STATS, "none", size=size)
     assert used.startswith("none")
     model.eval()
     with torch.no_grad():
@@ -44,11 +45,11 @@ def test_models_regress_three_ordered_mm_values(arch, size):
 @pytest.mark.slow
 def test_inception_auxiliary_head_at_299():
     assert inception_aux_fits(299) and not inception_aux_fits(298)
-    model, _ = build_model("inception_v3", STATS, "none", size=299, log=lambda m: None)
+    model, _ = build_model("inception_v3", STATS, "none", size=299)
     model.train()
     out = model(torch.randn(2, 3, 299, 299))
     assert out.logits.shape == (2, 3) and out.aux_logits.shape == (2, 3)
-    small, _ = build_model("inception_v3", STATS, "none", size=160, log=lambda m: None)
+    small, _ = build_model("inception_v3", STATS, "none", size=160)
     small.train()
     assert main_output(small(torch.randn(2, 3, 160, 160))).shape == (2, 3)
 
@@ -65,7 +66,7 @@ def test_unknown_architecture():
         build_model("resnet5000", STATS)
 
 
-def test_imagenet_weights_unavailable(monkeypatch):
+def test_imagenet_weights_unavailable(monkeypatch, caplog):
     def offline(*a, **k):
         raise urllib.error.URLError("no network")
 
@@ -74,7 +75,7 @@ def test_imagenet_weights_unavailable(monkeypatch):
     monkeypatch.setattr(api, "load_state_dict_from_url", offline)  # as if offline with an empty cache
     with pytest.raises(PsdError, match="could not be had"):
         build_model("resnet18", STATS, "imagenet")
-    logs = []
     with pytest.warns(UserWarning, match="training from scratch"):
-        _, used = build_model("resnet18", STATS, "auto", log=logs.append)
-    assert "unavailable" in used and logs and "WARNING" in logs[0]
+        _, used = build_model("resnet18", STATS, "auto")
+    warned = [r for r in caplog.records if r.name == "psdfactory.learn.models" and r.levelno == logging.WARNING]
+    assert "unavailable" in used and warned and "training from scratch" in warned[0].getMessage()

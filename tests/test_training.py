@@ -1,6 +1,7 @@
 """Training, resume, evaluation, benchmark, report, predict and export on a tiny dataset."""
 
 import json
+import logging
 import shutil
 
 import numpy as np
@@ -48,7 +49,7 @@ def trained(dataset, tmp_path_factory):
     from psdfactory.learn.train import train
 
     out = tmp_path_factory.mktemp("model")
-    summary = train(params(), dataset, out, log=lambda m: None)
+    summary = train(params(), dataset, out)
     return out, summary
 
 
@@ -68,7 +69,7 @@ def test_training_lowers_loss_and_writes_outputs(trained):
 
 
 @pytest.mark.slow
-def test_resume_after_interruption_matches_uninterrupted(dataset, trained, tmp_path, monkeypatch):
+def test_resume_after_interruption_matches_uninterrupted(dataset, trained, tmp_path, monkeypatch, caplog):
     import csv
 
     from psdfactory.learn import train as train_mod
@@ -85,26 +86,26 @@ def test_resume_after_interruption_matches_uninterrupted(dataset, trained, tmp_p
 
     monkeypatch.setattr(train_mod, "run_epoch", crash_on_third)
     with pytest.raises(KeyboardInterrupt):
-        train_mod.train(params(), dataset, out, log=lambda m: None)
+        train_mod.train(params(), dataset, out)
     assert not (out / "model.pt").exists()
     monkeypatch.setattr(train_mod, "run_epoch", real)
-    logs = []
-    train_mod.train(params(), dataset, out, log=logs.append)
-    assert any("resuming resnet18 from epoch 3" in m for m in logs)
+    caplog.set_level(logging.INFO, logger="psdfactory")
+    train_mod.train(params(), dataset, out)
+    assert any("resuming resnet18 from epoch 3" in m for m in caplog.messages)
     resumed = [float(r["train_loss"]) for r in csv.DictReader(open(out / "history.csv"))]
     straight = [float(r["train_loss"]) for r in csv.DictReader(open(trained[0] / "history.csv"))]
     np.testing.assert_allclose(resumed, straight, rtol=1e-5)
 
 
 @pytest.mark.slow
-def test_other_settings_do_not_resume(dataset, trained, tmp_path):
+def test_other_settings_do_not_resume(dataset, trained, tmp_path, caplog):
     from psdfactory.learn.train import train
 
     out = tmp_path / "m"
     shutil.copytree(trained[0], out)
-    logs = []
-    train(params(epochs=1, lr=1e-3), dataset, out, log=logs.append)
-    assert any("ignoring" in m for m in logs) and not any("resuming" in m for m in logs)
+    caplog.set_level(logging.INFO, logger="psdfactory")
+    train(params(epochs=1, lr=1e-3), dataset, out)
+    assert any("ignoring" in m for m in caplog.messages) and not any("resuming" in m for m in caplog.messages)
 
 
 @pytest.mark.slow
@@ -120,7 +121,7 @@ def test_needs_train_and_val(dataset, tmp_path):
         t = pq2.read_table(f)
         t = t.set_column(t.schema.get_field_index("split"), "split", pa.array(["train"] * 10))
         pq2.write_table(t, f)
-        train(params(), root, tmp_path / "m", log=lambda m: None)
+        train(params(), root, tmp_path / "m")
 
 
 @pytest.mark.slow
@@ -135,7 +136,7 @@ def test_evaluate_benchmark_report(dataset, trained, tmp_path):
     shutil.copytree(dataset, root)
     shutil.copytree(model_dir, root / "models" / "resnet18")
     ev = root / "eval" / "resnet18"
-    res = evaluate(root / "models" / "resnet18" / "model.pt", root, ["tiny"], ev, log=lambda m: None)
+    res = evaluate(root / "models" / "resnet18" / "model.pt", root, ["tiny"], ev)
     m = res["datasets"]["tiny"]
     assert m["n"] == 2 and m["split"] == "test" and m["order_violations"] == 0.0
     assert set(m["overall"]) == {"r2", "mse", "mae"}
@@ -148,7 +149,7 @@ def test_evaluate_benchmark_report(dataset, trained, tmp_path):
         assert im.format == "PNG" and im.size == (500, 350)
         assert len(set(im.convert("L").getdata())) > 2  # curves, axes and labels: not a blank canvas
 
-    b = benchmark(root / "models" / "resnet18" / "model.pt", root, "tiny", batch=2, seconds=0.05, repeats=2, log=lambda m: None)
+    b = benchmark(root / "models" / "resnet18" / "model.pt", root, "tiny", batch=2, seconds=0.05, repeats=2)
     r = b["results"][0]
     assert r["paths"]["fp32"]["batch1"]["images_per_s"] > 0 and r["paths"]["fast"]["batched"]["batch"] == 2
     assert r["params_m"] == pytest.approx(11.18, abs=0.05) and r["gflops"] > 0
@@ -221,7 +222,7 @@ def test_prepare_rescales_to_the_model_scale():
 def test_export_matches_pytorch(trained, tmp_path):
     from psdfactory.deploy.export import export
 
-    rep = export(trained[0] / "model.pt", tmp_path / "exp", log=lambda m: None)
+    rep = export(trained[0] / "model.pt", tmp_path / "exp")
     assert (tmp_path / "exp" / "model.onnx").is_file() and (tmp_path / "exp" / "model.torchscript.pt").is_file()
     assert rep["onnx"]["max_abs_diff_mm"] < 1e-3 and rep["torchscript"]["max_abs_diff_mm"] < 1e-3
     ts = torch.jit.load(str(tmp_path / "exp" / "model.torchscript.pt"))
@@ -237,19 +238,19 @@ def test_int8_export_is_checked_and_predicts_like_pytorch(dataset, trained, tmp_
     model = trained[0] / "model.pt"
     # a budget no model can meet: refused, and nothing left under the final name
     with pytest.raises(PsdError, match="int8 model refused"):
-        export(model, tmp_path / "strict", log=lambda m: None, int8_results=dataset, dataset="tiny", max_r2_change=-1)
+        export(model, tmp_path / "strict", int8_results=dataset, dataset="tiny", max_r2_change=-1)
     assert not list((tmp_path / "strict").glob("*int8*"))
-    rep = export(model, tmp_path / "exp", log=lambda m: None, int8_results=dataset, dataset="tiny", max_r2_change=10)
+    rep = export(model, tmp_path / "exp", int8_results=dataset, dataset="tiny", max_r2_change=10)
     assert rep["int8"]["calibration_images"] > 0 and (tmp_path / "exp" / "model.int8.onnx").is_file()
     img = dataset / "tiny" / "scenes" / "tiny-000008" / "image.png"
-    ref = predict_files(model, [str(img)], log=lambda m: None)[0]
+    ref = predict_files(model, [str(img)])[0]
     for name in ("model.onnx", "model.int8.onnx"):
-        got = predict_files(tmp_path / "exp" / name, [str(img)], log=lambda m: None)[0]
+        got = predict_files(tmp_path / "exp" / name, [str(img)])[0]
         tol = 1e-3 if name == "model.onnx" else 0.1 * ref["d90_mm"]
         assert all(abs(got[k] - ref[k]) <= tol for k in ("d10_mm", "d50_mm", "d90_mm")), (name, got, ref)
     (tmp_path / "exp" / "meta.json").unlink()
     with pytest.raises(PsdError, match="meta.json"):
-        predict_files(tmp_path / "exp" / "model.onnx", [str(img)], log=lambda m: None)
+        predict_files(tmp_path / "exp" / "model.onnx", [str(img)])
 
 
 def test_train_params_slice_ignores_scene_settings():
@@ -362,8 +363,8 @@ def test_benchmark_report_and_predict_in_every_capability_combination(dataset, t
     shutil.copytree(dataset, root)
     shutil.copytree(trained[0], root / "models" / "resnet18")
     model = root / "models" / "resnet18" / "model.pt"
-    evaluate(model, root, ["tiny"], root / "eval" / "resnet18", log=lambda m: None)
-    b = benchmark(model, root, "tiny", batch=2, seconds=0.02, repeats=1, log=lambda m: None)
+    evaluate(model, root, ["tiny"], root / "eval" / "resnet18")
+    b = benchmark(model, root, "tiny", batch=2, seconds=0.02, repeats=1)
     r = b["results"][0]
     measured = {k for k in r["paths"] if k != "fast"}
     expected = {"fp32", "channels_last"} | ({"bf16"} if capabilities.native_bf16 else set()) | (
@@ -401,7 +402,7 @@ def test_benchmark_report_and_predict_in_every_capability_combination(dataset, t
         with pytest.raises(PsdError, match="needs ONNX Runtime.*pip install onnxruntime"):
             from psdfactory.deploy.export import export
 
-            export(model, tmp_path / "exp", log=lambda m: None)
+            export(model, tmp_path / "exp")
 
 
 def test_predict_finds_images_in_subfolders_and_skips_masks(tmp_path):

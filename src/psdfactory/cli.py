@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 from pathlib import Path
 
 from . import PsdError, __version__
+
+logger = logging.getLogger(__name__)
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 
 def _params(text: str) -> dict:
@@ -32,14 +36,14 @@ def cmd_manifest(a: argparse.Namespace) -> None:
 
     fractions = _params(a.params)["split"]
     scenes = write_shard([Path(d) for d in a.scene_dirs], Path(a.results), fractions, Path(a.scenes_out), Path(a.particles_out))
-    print(f"wrote {a.scenes_out}: {scenes.num_rows} scenes")
+    logger.info(f"wrote {a.scenes_out}: {scenes.num_rows} scenes")
 
 
 def cmd_show(a: argparse.Namespace) -> None:
     from .scene.show import contact_sheet
 
     out = contact_sheet(Path(a.results), a.dataset, Path(a.out), a.n)
-    print(f"wrote {out}")
+    logger.info(f"wrote {out}")
 
 
 def cmd_compare_backends(a: argparse.Namespace) -> None:
@@ -47,7 +51,7 @@ def cmd_compare_backends(a: argparse.Namespace) -> None:
 
     summary = compare_backends(Path(a.results), a.dataset, a.n, _params(a.params), Path(a.out_dir))
     for r in summary["scenes"]:
-        print(f"{r['scene_id']}: tiny {r['seconds_tiny']:.1f} s, cycles {r['seconds_cycles']:.1f} s, masks agree on "
+        logger.info(f"{r['scene_id']}: tiny {r['seconds_tiny']:.1f} s, cycles {r['seconds_cycles']:.1f} s, masks agree on "
               f"{100 * r['mask_agreement']:.1f} % of pixels ({100 * r['mask_agreement_off_edges']:.2f} % off edges)")
 
 
@@ -94,7 +98,7 @@ def cmd_report(a: argparse.Namespace) -> None:
     inputs = ReportInputs.from_lists(cfg, a.metrics, a.scatters, a.histories, a.bench, a.manifests,
                                      a.contact_sheets, a.compare, a.ceilings)
     build_report(cfg, inputs, Path(a.html), Path(a.md))
-    print(f"wrote {a.html} and {a.md}")
+    logger.info(f"wrote {a.html} and {a.md}")
 
 
 def cmd_ceiling(a: argparse.Namespace) -> None:
@@ -107,15 +111,16 @@ def cmd_ceiling(a: argparse.Namespace) -> None:
     write_json(Path(a.out), c)
     for kind in ("visible", "sampling"):
         if c[kind]:
-            print(f"{a.dataset}: {kind} ceiling R² " + " / ".join(f"{v:.3f}" for v in c[kind].values()))
+            logger.info(f"{a.dataset}: {kind} ceiling R² " + " / ".join(f"{v:.3f}" for v in c[kind].values()))
     if c.get("note"):
-        print(f"{a.dataset}: {c['note']}")
+        logger.info(f"{a.dataset}: {c['note']}")
 
 
 def cmd_predict(a: argparse.Namespace) -> int:
     from .deploy.predict import predict_files, write_predictions
 
-    rows = predict_files(Path(a.model), a.images, a.mm_per_px, device=a.device, log=lambda m: print(m, file=sys.stderr))
+    rows = predict_files(Path(a.model), a.images, a.mm_per_px, device=a.device)
+    # the table is the command's output (stdout); its notes are log records (stderr)
     print(f"{'image':<50} {'d10_mm':>8} {'d50_mm':>8} {'d90_mm':>8}")
     for r in rows:
         if r["error"]:
@@ -124,10 +129,10 @@ def cmd_predict(a: argparse.Namespace) -> int:
             print(f"{r['image']:<50} {r['d10_mm']:>8.3f} {r['d50_mm']:>8.3f} {r['d90_mm']:>8.3f}")
     if a.out:
         write_predictions(rows, Path(a.out))
-        print(f"wrote {a.out}", file=sys.stderr)
+        logger.info(f"wrote {a.out}")
     failed = sum(bool(r["error"]) for r in rows)
     if failed:
-        print(f"psdfactory predict: {failed} of {len(rows)} images could not be read", file=sys.stderr)
+        logger.error(f"psdfactory predict: {failed} of {len(rows)} images could not be read")
     return 1 if failed else 0
 
 
@@ -148,6 +153,9 @@ def _threads(n: int) -> None:
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="psdfactory", description=__doc__)
     ap.add_argument("--version", action="version", version=f"psdfactory {__version__}")
+    loud = ap.add_mutually_exclusive_group()
+    loud.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only (no progress bars)")
+    loud.add_argument("-v", "--verbose", action="store_true", help="log debugging detail too")
     sub = ap.add_subparsers(dest="command", required=True)
 
     for name, helptext in [
@@ -263,11 +271,43 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+class _StderrHandler(logging.StreamHandler):
+    """A handler that writes to whatever ``sys.stderr`` is when a record is emitted (a job's
+    redirected log file, pytest's capture), not the one there was when it was made."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
+def configure_logging(verbosity: int = 0) -> None:
+    """Send psdfactory's log records to stderr with time and level: INFO and up by default
+    (progress and rate/ETA lines included), WARNING and up with ``verbosity < 0`` (--quiet),
+    DEBUG with ``verbosity > 0`` (--verbose). Other libraries log WARNING and up. The rules
+    redirect a job's stderr to its log file, so the job logs get every record. Idempotent."""
+    root = logging.getLogger()
+    if not any(isinstance(h, _StderrHandler) for h in root.handlers):
+        handler = _StderrHandler()
+        handler.setFormatter(logging.Formatter(LOG_FORMAT, "%Y-%m-%d %H:%M:%S"))
+        root.addHandler(handler)
+    level = logging.WARNING if verbosity < 0 else logging.DEBUG if verbosity > 0 else logging.INFO
+    logging.getLogger("psdfactory").setLevel(level)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    configure_logging(-1 if args.quiet else 1 if args.verbose else 0)
+    logger.debug(f"psdfactory {__version__}, arguments {sys.argv[1:] if argv is None else argv}")
     try:
         return args.func(args) or 0
-    except PsdError as e:
+    except PsdError as e:  # the command's one-line verdict, shown whatever the log level
         print(f"psdfactory {args.command}: error: {e}", file=sys.stderr)
         return 2
 

@@ -11,6 +11,7 @@ candidate, so there is always an answer).
 
 from __future__ import annotations
 
+import logging
 import statistics
 import tempfile
 import time
@@ -27,6 +28,8 @@ from ..learn.capability import Capabilities
 from ..learn.models import count_parameters, main_output
 from ..learn.runtime import autocast
 from .quantize import MAX_R2_CHANGE
+
+logger = logging.getLogger(__name__)
 
 
 def gflops(model: nn.Module, size: int) -> float:
@@ -126,7 +129,7 @@ def onnx_runners(model: nn.Module, size: int, keys: list[str], calibration: np.n
 
 def benchmark_model(model: nn.Module, meta: dict, device: torch.device, results_root: Path | None = None,
                     dataset: str | None = None, batch: int = 16, seconds: float = 2.0, repeats: int = 5,
-                    log=print, caps: Capabilities | None = None) -> dict:
+                    caps: Capabilities | None = None) -> dict:
     """Every candidate path on one device: speed at batch 1 and batched, and (with a dataset)
     accuracy on its test split; the fastest within the accuracy budget becomes the "fast" path.
     Without a dataset only speed is measured (int8 is then calibrated on random inputs)."""
@@ -168,7 +171,7 @@ def benchmark_model(model: nn.Module, meta: dict, device: torch.device, results_
                     x = np.random.default_rng(0).standard_normal((b, 3, size, size)).astype(np.float32)
                     r = throughput(lambda ort=runners[key], x=x: ort(x), b, seconds, repeats)
                 res["batch1" if b == 1 else "batched"] = r
-                log(f"  {path.name:<32} batch {b:>3}: {r['images_per_s']:7.1f} images/s, {r['ms_per_image']:7.2f} ms/image")
+                logger.info(f"  {path.name:<32} batch {b:>3}: {r['images_per_s']:7.1f} images/s, {r['ms_per_image']:7.2f} ms/image")
             if rows and path.engine == "torch":
                 p, y = predict_rows(model.to(device), meta, results_root, rows, device, path.precision)
                 res["accuracy"] = regression_metrics(y, p)
@@ -183,16 +186,16 @@ def benchmark_model(model: nn.Module, meta: dict, device: torch.device, results_
     out["speedup_batched"] = fast["batched"]["images_per_s"] / base["batched"]["images_per_s"]
     out["speedup_batch1"] = fast["batch1"]["images_per_s"] / base["batch1"]["images_per_s"]
     for k, why in out["skipped"].items():
-        log(f"  (not tried: {k}: {why})")
+        logger.info(f"  (not tried: {k}: {why})")
     changes = ", ".join(f"{k} {v['r2_change']:+.4f}" for k, v in out["paths"].items()
                         if k not in ("fp32", "fast") and v["r2_change"] is not None)
-    log(f"  fast path: {fast['name']} ({out['speedup_batched']:.2f}× fp32 batched)"
+    logger.info(f"  fast path: {fast['name']} ({out['speedup_batched']:.2f}× fp32 batched)"
         + (f"; R² change {changes}" if changes else ""))
     return out
 
 
 def benchmark(model_path: Path, results_root: Path, dataset: str, batch: int, seconds: float, repeats: int,
-              device: str = "auto", log=print) -> dict:
+              device: str = "auto") -> dict:
     """Speed and accuracy of every path on this machine (CPU, and the GPU when present)."""
     from ..learn.runtime import load_model, pick_device
 
@@ -201,14 +204,13 @@ def benchmark(model_path: Path, results_root: Path, dataset: str, batch: int, se
     if pick_device(device).type == "cuda":
         devices.append(torch.device("cuda"))
     caps = capability.detect()
-    log(f"CPU: {caps.summary()}")
+    logger.info(f"CPU: {caps.summary()}")
     result = {"arch": meta["arch"], "weights": meta["weights"], "cpu": caps.as_dict(), "results": []}
     for dev in devices:
-        log(f"{meta['arch']} on {dev} at {meta['input_size']} px:")
-        result["results"].append(benchmark_model(model, meta, dev, results_root, dataset, batch, seconds, repeats, log,
-                                                 caps))
+        logger.info(f"{meta['arch']} on {dev} at {meta['input_size']} px:")
+        result["results"].append(benchmark_model(model, meta, dev, results_root, dataset, batch, seconds, repeats, caps))
     fast = result["results"][-1]["paths"]
     result["r2_change"] = fast["fast"]["r2_change"]
-    log(f"R² overall: fp32 {fast['fp32']['accuracy']['overall']['r2']:.4f}, fast "
+    logger.info(f"R² overall: fp32 {fast['fp32']['accuracy']['overall']['r2']:.4f}, fast "
         f"{fast['fast']['accuracy']['overall']['r2']:.4f} (change {result['r2_change']:+.4f})")
     return result

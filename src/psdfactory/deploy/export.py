@@ -4,6 +4,7 @@ test split."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -13,8 +14,10 @@ from .. import PsdError
 from ..io import atomic_path, write_json
 from ..learn.models import main_output
 
+logger = logging.getLogger(__name__)
 
-def export(model_path: Path, out_dir: Path, log=print, int8_results: Path | None = None, dataset: str = "train",
+
+def export(model_path: Path, out_dir: Path, int8_results: Path | None = None, dataset: str = "train",
            max_r2_change: float | None = None) -> dict:
     """ONNX and TorchScript copies of a model, each checked against the PyTorch output; with
     `int8_results` (a results root) also ``model.int8.onnx``, calibrated on the dataset's
@@ -60,17 +63,17 @@ def export(model_path: Path, out_dir: Path, log=print, int8_results: Path | None
         diff = report[k]["max_abs_diff_mm"]
         if not diff < 1e-3:
             raise PsdError(f"{k} export differs from PyTorch by {diff:.2e} mm (tolerance 1e-3 mm)")
-        log(f"{k}: {report[k]['path']} (max |difference| vs PyTorch {diff:.1e} mm)")
+        logger.info(f"{k}: {report[k]['path']} (max |difference| vs PyTorch {diff:.1e} mm)")
     if int8_results is not None:
         report["int8"] = export_int8(model, meta, onnx_path, out_dir / "model.int8.onnx", Path(int8_results), dataset,
-                                     max_r2_change, log)
+                                     max_r2_change)
     write_json(out_dir / "export.json", report)
     write_json(out_dir / "meta.json", meta)
     return report
 
 
 def export_int8(model, meta: dict, fp32_onnx: Path, out: Path, results_root: Path, dataset: str,
-                max_r2_change: float, log=print) -> dict:
+                max_r2_change: float) -> dict:
     from ..learn.data import normalised_images
     from ..learn.evaluate import eval_rows
     from ..learn.metrics import regression_metrics
@@ -93,5 +96,5 @@ def export_int8(model, meta: dict, fp32_onnx: Path, out: Path, results_root: Pat
         raise PsdError(f"int8 model refused: overall R² {r2_8:.4f} vs fp32 {r2_32:.4f} on {len(y)} test scenes "
                        f"(change {r2_8 - r2_32:+.4f}, allowed ±{max_r2_change}); use the fp32 model.onnx")
     tmp_out.replace(out)
-    log(f"int8: {out} (R² {r2_32:.4f} → {r2_8:.4f} on {len(y)} test scenes; calibrated on {len(calib)} images)")
+    logger.info(f"int8: {out} (R² {r2_32:.4f} → {r2_8:.4f} on {len(y)} test scenes; calibrated on {len(calib)} images)")
     return info

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from ..io import atomic_path, read_png, write_json
 from ..learn.data import normalise, to_input
 from ..learn.models import main_output
 
+logger = logging.getLogger(__name__)
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 
 
@@ -102,13 +104,13 @@ def load_predictor(model_path: Path, device: str = "cpu"):
     return run, meta
 
 
-def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None, device: str = "cpu", log=print) -> list[dict]:
+def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None, device: str = "cpu") -> list[dict]:
     run, meta = load_predictor(model_path, device)
-    log(f"model {meta['arch']} ({model_path}): expects images at {meta['mm_per_px']:.4f} mm/px "
+    logger.info(f"model {meta['arch']} ({model_path}): expects images at {meta['mm_per_px']:.4f} mm/px "
         f"({meta['image_resolution']} px over {meta['mm_per_px'] * meta['image_resolution']:.0f} mm); "
         f"network input {meta['input_size']} px = {network_scale(meta):.4f} mm/px")
     if mm_per_px is None:
-        log("no --mm-per-px given: each image is taken to cover the same field of view as the training images")
+        logger.info("no --mm-per-px given: each image is taken to cover the same field of view as the training images")
     files = expand_inputs(inputs)
     if not files:
         raise PsdError("no image files given")

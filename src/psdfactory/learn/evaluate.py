@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,8 @@ from .data import SceneImages, manifest_rows
 from ..io import atomic_path, pyplot, save_figure, write_json
 from .metrics import NAMES, regression_metrics
 from .runtime import load_model, pick_device, pick_precision, predict_batches
+
+logger = logging.getLogger(__name__)
 
 
 def eval_rows(results_root: Path, dataset: str) -> list[dict]:
@@ -30,7 +33,7 @@ def predict_rows(model, meta: dict, results_root: Path, rows: list[dict], device
 
 
 def evaluate(model_path: Path, results_root: Path, datasets: list[str], out_dir: Path, precision: str = "fp32",
-             device: str = "auto", log=print) -> dict:
+             device: str = "auto") -> dict:
     dev = pick_device(device)
     prec = pick_precision(precision, dev)
     model, meta = load_model(model_path, dev)
@@ -44,7 +47,7 @@ def evaluate(model_path: Path, results_root: Path, datasets: list[str], out_dir:
         m = regression_metrics(y, p)
         m["split"] = "test" if rows[0]["split"] == "test" else "all"
         result["datasets"][ds] = m
-        log(f"{meta['arch']} on {ds} ({m['n']} scenes): R² overall {m['overall']['r2']:.4f}, "
+        logger.info(f"{meta['arch']} on {ds} ({m['n']} scenes): R² overall {m['overall']['r2']:.4f}, "
             + ", ".join(f"{n} {m[n]['r2']:.3f}" for n in NAMES) + f"; MAE {m['overall']['mae']:.3f} mm")
         for r, yy, pp in zip(rows, y, p):
             preds_rows.append({"dataset": ds, "scene_id": r["scene_id"], "split": r["split"],

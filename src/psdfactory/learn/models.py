@@ -7,6 +7,7 @@ training targets' spread, and ``forward`` returns millimetres.
 
 from __future__ import annotations
 
+import logging
 import math
 import warnings
 from dataclasses import dataclass
@@ -17,6 +18,7 @@ from torch import nn
 from .. import PsdError
 from ..config import DEFAULT_INPUT_SIZE as DEFAULT_INPUT
 
+logger = logging.getLogger(__name__)
 TARGETS = ("d10_mm", "d50_mm", "d90_mm")
 MIN_INPUT = {"inception_v3": 75}
 
@@ -118,11 +120,11 @@ def inception_aux_fits(size: int) -> bool:
     return (x - 5) // 3 + 1 >= 5
 
 
-def build_model(arch: str, stats: TargetStats, pretrained: str = "none", size: int | None = None, log=print) -> tuple[nn.Module, str]:
+def build_model(arch: str, stats: TargetStats, pretrained: str = "none", size: int | None = None) -> tuple[nn.Module, str]:
     """A torchvision model with the ordered regression head; returns (model, weights used).
 
     InceptionV3 keeps its auxiliary head (trained with its own loss term) when the input is
-    large enough for it (≥ 299 px); below that the head is dropped, with a note in the log.
+    large enough for it (≥ 299 px); below that the head is dropped (training logs a note).
     """
     import torchvision
 
@@ -141,7 +143,7 @@ def build_model(arch: str, stats: TargetStats, pretrained: str = "none", size: i
                 raise
             msg = f"train.pretrained: auto — no ImageNet weights for {arch}; training from scratch. ({e})"
             warnings.warn(msg, stacklevel=2)
-            log(f"WARNING: {msg}")
+            logger.warning(msg)
             used = "none (auto: ImageNet weights unavailable, trained from scratch)"
     elif pretrained != "none":
         raise PsdError(f"train.pretrained must be auto, imagenet or none, got {pretrained!r}")
@@ -149,7 +151,6 @@ def build_model(arch: str, stats: TargetStats, pretrained: str = "none", size: i
     if arch == "inception_v3" and size is not None and not inception_aux_fits(size):
         model.aux_logits = False
         model.AuxLogits = None
-        log(f"inception_v3 at {size} px: auxiliary head dropped (it needs ≥ 299 px)")
     return model, used
 
 

@@ -3,6 +3,7 @@ to run on, the loss, batched inference, and saving/loading a model file."""
 
 from __future__ import annotations
 
+import logging
 import time
 from contextlib import nullcontext
 from pathlib import Path
@@ -14,6 +15,8 @@ from .. import PsdError
 from ..io import atomic_path
 from .data import normalise
 from .models import TargetStats, build_model, main_output
+
+logger = logging.getLogger(__name__)
 
 
 def pick_device(name: str) -> torch.device:
@@ -47,7 +50,7 @@ def autocast(device: torch.device, precision: str):
     return torch.autocast(device.type, dtype=dtype)
 
 
-def faster_cpu_precision(model: nn.Module, size: int, batch: int, stats: TargetStats, aux_weight: float, log=print) -> str:
+def faster_cpu_precision(model: nn.Module, size: int, batch: int, stats: TargetStats, aux_weight: float) -> str:
     """bf16 autocast or fp32 for CPU training, whichever trains this model faster here.
 
     Native bf16 helps the big convolutions (ResNet-50: ~2×) but not always the depthwise ones
@@ -70,7 +73,7 @@ def faster_cpu_precision(model: nn.Module, size: int, batch: int, stats: TargetS
     model.zero_grad(set_to_none=True)
     model.load_state_dict(saved)
     pick = "bf16" if times["bf16"] < times["fp32"] else "fp32"
-    log(f"precision auto: one training batch takes {times['bf16']:.2f} s in bf16, {times['fp32']:.2f} s in fp32 → {pick}")
+    logger.info(f"precision auto: one training batch takes {times['bf16']:.2f} s in bf16, {times['fp32']:.2f} s in fp32 → {pick}")
     return pick
 
 
@@ -128,7 +131,7 @@ def load_model(path: Path, device: torch.device | str = "cpu") -> tuple[nn.Modul
     try:
         meta = ckpt["meta"]
         stats = TargetStats(**meta["target_stats"])
-        model, _ = build_model(meta["arch"], stats, "none", size=meta["input_size"], log=lambda m: None)
+        model, _ = build_model(meta["arch"], stats, "none", size=meta["input_size"])
         model.load_state_dict(ckpt["state_dict"])
     except PsdError:
         raise

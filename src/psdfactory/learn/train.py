@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import logging
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -22,9 +23,11 @@ from .. import PsdError, __version__
 from ..io import atomic_path
 from .augment import augment_d4, photometric, rescale
 from .data import SceneImages, manifest_rows, normalise
-from .models import TargetStats, build_model, count_parameters, input_size
+from .models import TargetStats, build_model, count_parameters, inception_aux_fits, input_size
 from .runtime import (autocast, faster_cpu_precision, load_checkpoint, loss_fn, pick_device, pick_precision,
                       predict_batches, save_model)
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -104,7 +107,7 @@ def run_epoch(model, loader, stats, opt, device, precision, aux_weight, gen, par
     return total / max(n, 1)
 
 
-def train(params: TrainParams, results_root: Path, out_dir: Path, log=print) -> dict:
+def train(params: TrainParams, results_root: Path, out_dir: Path) -> dict:
     from tqdm import tqdm
 
     torch.manual_seed(params.seed)
@@ -124,10 +127,12 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, log=print) -> 
     train_ds = SceneImages(results_root, train_rows, size)
     val_ds = SceneImages(results_root, val_rows, size)
     stats = TargetStats.from_targets(train_ds.y)
-    model, weights_used = build_model(params.arch, stats, params.pretrained, size=size, log=log)
+    model, weights_used = build_model(params.arch, stats, params.pretrained, size=size)
+    if params.arch == "inception_v3" and not inception_aux_fits(size):
+        logger.info(f"inception_v3 at {size} px: auxiliary head dropped (it needs ≥ 299 px)")
     model = model.to(device).to(memory_format=torch.channels_last)
     if params.precision == "auto" and precision == "bf16" and device.type == "cpu":
-        precision = faster_cpu_precision(model, size, min(params.batch_size, len(train_ds)), stats, params.aux_loss_weight, log)
+        precision = faster_cpu_precision(model, size, min(params.batch_size, len(train_ds)), stats, params.aux_loss_weight)
     opt = torch.optim.Adam(model.parameters(), lr=params.lr, weight_decay=params.weight_decay)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, mode="min", factor=params.lr_factor, patience=params.lr_patience)
     gen = torch.Generator().manual_seed(params.seed)
@@ -151,15 +156,15 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, log=print) -> 
             torch.set_rng_state(ck["torch_rng"])
             history.rows = ck["history"]
             start_epoch, best, best_epoch, stale = ck["epoch"] + 1, ck["best"], ck["best_epoch"], ck["stale"]
-            log(f"resuming {params.arch} from epoch {start_epoch + 1} (checkpoint {last_path})")
+            logger.info(f"resuming {params.arch} from epoch {start_epoch + 1} (checkpoint {last_path})")
         else:
-            log(f"ignoring {last_path}: it was made with other settings or data")
+            logger.info(f"ignoring {last_path}: it was made with other settings or data")
 
     from torch.utils.tensorboard import SummaryWriter
 
     tb = SummaryWriter(str(out_dir / "tensorboard"))
     n_params = count_parameters(model)
-    log(f"training {params.arch} ({n_params / 1e6:.1f} M parameters, weights: {weights_used}) on "
+    logger.info(f"training {params.arch} ({n_params / 1e6:.1f} M parameters, weights: {weights_used}) on "
         f"{len(train_ds)} train / {len(val_ds)} val scenes of {params.dataset!r}, input {size} px, "
         f"{device} {precision}, up to {params.epochs} epochs")
     meta = {
@@ -179,7 +184,7 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, log=print) -> 
     for epoch in range(start_epoch, params.epochs):
         t0 = time.perf_counter()
         with tqdm(total=len(train_ds), desc=f"{params.arch} epoch {epoch + 1}/{params.epochs}", unit="img",
-                  mininterval=2.0, leave=True) as bar:
+                  mininterval=2.0, leave=True, disable=not logger.isEnabledFor(logging.INFO)) as bar:
             train_loss = run_epoch(model, train_loader, stats, opt, device, precision, params.aux_loss_weight, gen, params, bar)
         pred, y = predict_batches(model, val_loader, device, precision)
         val_loss = float(nn.functional.mse_loss(stats.standardise(pred), stats.standardise(y)))
@@ -197,7 +202,7 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, log=print) -> 
             save_model(ckpt_dir / "best.pt", model, {**meta, "epoch": epoch + 1, "val_loss": val_loss})
         else:
             stale += 1
-        log(f"epoch {epoch + 1}: train loss {train_loss:.4f}, val loss {val_loss:.4f}, val MAE {val_mae:.3f} mm, "
+        logger.info(f"epoch {epoch + 1}: train loss {train_loss:.4f}, val loss {val_loss:.4f}, val MAE {val_mae:.3f} mm, "
             f"lr {lr:.2e}, {row['seconds']:.0f} s{' (best)' if improved else ''}")
         with atomic_path(last_path) as tmp:
             torch.save({
@@ -219,5 +224,5 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, log=print) -> 
     with atomic_path(out_dir / "model.pt") as tmp:
         torch.save({"meta": summary, "state_dict": best_ckpt["state_dict"]}, tmp)
     history.write_csv(out_dir / "history.csv")
-    log(f"done: best val loss {best:.4f} at epoch {best_epoch} ({stop_reason}); wrote {out_dir / 'model.pt'}")
+    logger.info(f"done: best val loss {best:.4f} at epoch {best_epoch} ({stop_reason}); wrote {out_dir / 'model.pt'}")
     return summary

@@ -6,6 +6,7 @@ millimetre-to-centimetre particles. Everything that leaves this module is in mm.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -16,6 +17,7 @@ from .. import PsdError
 from ..seeding import rng_for
 from .geometry import CM, Geometry
 
+logger = logging.getLogger(__name__)
 GROUP_ACTIVE, GROUP_FROZEN, GROUP_WALLS = 1, 2, 4
 GROUP_ALL = GROUP_ACTIVE | GROUP_FROZEN | GROUP_WALLS
 
@@ -168,7 +170,7 @@ def quality_problems(q: dict, b: QualityBounds) -> list[str]:
     return problems
 
 
-def _run_once(geometry: Geometry, xy: np.ndarray, table_size: float, p: PhysicsParams, rng: np.random.Generator, log) -> tuple:
+def _run_once(geometry: Geometry, xy: np.ndarray, table_size: float, p: PhysicsParams, rng: np.random.Generator) -> tuple:
     import pybullet as pb
 
     n = len(geometry)
@@ -253,7 +255,7 @@ def _run_once(geometry: Geometry, xy: np.ndarray, table_size: float, p: PhysicsP
             if frozen.mean() >= p.stop_frozen_fraction:
                 break
         sim_time = step * p.timestep_s
-        log(f"settled {frozen.sum()}/{n} particles in {step} steps ({sim_time:.2f} s simulated, "
+        logger.info(f"settled {frozen.sum()}/{n} particles in {step} steps ({sim_time:.2f} s simulated, "
             f"{time.perf_counter() - t0:.1f} s wall)")
 
         pos = np.empty((n, 3))
@@ -269,19 +271,19 @@ def _run_once(geometry: Geometry, xy: np.ndarray, table_size: float, p: PhysicsP
         pb.disconnect(physicsClientId=cid)
 
 
-def simulate(geometry: Geometry, xy: np.ndarray, table_size: float, entropy: list[int], p: PhysicsParams, log=print) -> SimResult:
+def simulate(geometry: Geometry, xy: np.ndarray, table_size: float, entropy: list[int], p: PhysicsParams) -> SimResult:
     """Settle the scene; retry with derived seeds when quality bounds fail, then fail loudly."""
     failures = []
     for attempt in range(p.retries + 1):
         rng = rng_for(entropy, "simulate", attempt)
         t0 = time.perf_counter()
-        pos, quat, settled, min_contact, steps, sim_time = _run_once(geometry, xy, table_size, p, rng, log)
+        pos, quat, settled, min_contact, steps, sim_time = _run_once(geometry, xy, table_size, p, rng)
         q = quality_figures(geometry, pos, quat, settled, min_contact, table_size, p.quality.tolerance_mm)
         q.update(steps=steps, simulated_s=sim_time, wall_s=time.perf_counter() - t0, attempt=attempt)
         problems = quality_problems(q, p.quality)
         if not problems:
             return SimResult(pos, quat, settled, q, attempt)
-        log(f"attempt {attempt}: quality check failed: {'; '.join(problems)}")
+        logger.warning(f"attempt {attempt}: quality check failed: {'; '.join(problems)}")
         failures.append(f"attempt {attempt}: {'; '.join(problems)}")
     raise PsdError(
         f"simulation failed its quality bounds after {p.retries + 1} attempts:\n  " + "\n  ".join(failures)

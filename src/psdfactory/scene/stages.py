@@ -15,6 +15,7 @@ folder (one job per scene) or a batch of folders, skipping the scenes that are u
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 import time
 from dataclasses import dataclass
@@ -28,11 +29,8 @@ from ..io import atomic_path, read_json, read_npz, read_parquet, read_png, write
 from .geometry import Geometry
 from ..seeding import scene_id, scene_index
 
+logger = logging.getLogger(__name__)
 POSE_COLUMNS = ("particle_id", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "settled")
-
-
-def log(msg: str) -> None:
-    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
 def load_geometry(scene_dir: Path) -> Geometry:
@@ -89,7 +87,7 @@ def adopt_source(stage: str, params: dict, scene_dir: Path) -> dict:
     else:
         record["scene_id"] = scene_dir.name
     write_json(scene_dir / meta.name, record)  # last: marks the stage complete
-    log(f"{stage}: {scene_dir.name} takes its {'particles' if stage == 'sample' else 'settled poses'} from "
+    logger.info(f"{stage}: {scene_dir.name} takes its {'particles' if stage == 'sample' else 'settled poses'} from "
         f"{meta.parent.name} (a re-render)")
     return record
 
@@ -103,7 +101,7 @@ def run_sample(params: dict, scene_dir: Path) -> dict:
     spec, geometry = sample_scene(SampleParams.from_dict(params))
     write_npz(scene_dir / "geometry.npz", **geometry)
     write_json(scene_dir / "spec.json", spec)  # last: spec.json marks the stage complete
-    log(f"sampled {spec['scene_id']}: {spec['samplesize']} {spec['shape_type']} particles, "
+    logger.info(f"sampled {spec['scene_id']}: {spec['samplesize']} {spec['shape_type']} particles, "
         f"mean {spec['size_mean']:.2f} mm, sigma {spec['size_sigma']:.2f} mm ({time.perf_counter() - t0:.2f} s)")
     return spec
 
@@ -120,7 +118,7 @@ def run_simulate(params: dict, scene_dir: Path) -> dict:
     if len(geometry) != spec["samplesize"]:
         raise PsdError(f"{scene_dir}: spec.json and geometry.npz disagree on the particle count; rerun sample")
     xy = np.array([[q["x"], q["y"]] for q in spec["particles"]], dtype=float).reshape(-1, 2)
-    res = simulate(geometry, xy, float(spec["table_size"]), spec["entropy"], PhysicsParams.from_dict(params), log=log)
+    res = simulate(geometry, xy, float(spec["table_size"]), spec["entropy"], PhysicsParams.from_dict(params))
     n = len(geometry)
     table = pa.table(
         {
@@ -138,7 +136,7 @@ def run_simulate(params: dict, scene_dir: Path) -> dict:
     write_parquet(scene_dir / "poses.parquet", table)
     write_json(scene_dir / "simulate.json", {"scene_id": spec["scene_id"], **res.quality})
     q = res.quality
-    log(f"simulated {spec['scene_id']}: settled {q['settled_fraction']:.3f}, worst penetration "
+    logger.info(f"simulated {spec['scene_id']}: settled {q['settled_fraction']:.3f}, worst penetration "
         f"{q['worst_penetration_mm']:.2f} mm, attempt {res.attempt}, {q['wall_s']:.1f} s")
     return q
 
@@ -154,7 +152,7 @@ def run_render(params: dict, scene_dir: Path) -> dict:
     write_png(scene_dir / "image.png", image)
     write_png(scene_dir / "mask.png", mask)
     write_json(scene_dir / "render.json", {"scene_id": spec["scene_id"], **meta})
-    log(f"rendered {spec['scene_id']}: {meta['resolution']} px, {meta['mm_per_px']:.4f} mm/px, "
+    logger.info(f"rendered {spec['scene_id']}: {meta['resolution']} px, {meta['mm_per_px']:.4f} mm/px, "
         f"{len(np.unique(mask)) - 1} particles visible ({time.perf_counter() - t0:.2f} s)")
     return meta
 
@@ -209,7 +207,7 @@ def run_label(params: dict, scene_dir: Path) -> dict:
     )
     write_parquet(scene_dir / "particles.parquet", particles)
     write_json(scene_dir / "labels.json", record)
-    log(f"labelled {spec['scene_id']}: d10/d50/d90 = {record['d10_mm']:.2f}/{record['d50_mm']:.2f}/"
+    logger.info(f"labelled {spec['scene_id']}: d10/d50/d90 = {record['d10_mm']:.2f}/{record['d50_mm']:.2f}/"
         f"{record['d90_mm']:.2f} mm (number), {record['d10_v_mm']:.2f}/{record['d50_v_mm']:.2f}/"
         f"{record['d90_v_mm']:.2f} mm (volume); {record['n_visible']}/{n} visible")
     return record
@@ -316,13 +314,13 @@ def run_scenes(stage: str, params: dict, scene_dirs: list[Path], skip_up_to_date
     dirs = [Path(d) for d in scene_dirs]
     todo = [d for d in dirs if not (skip_up_to_date and up_to_date(stage, scene_params(stage, params, d), d))]
     if skip_up_to_date:
-        log(f"{stage}: {len(todo)} of {len(dirs)} scenes to run, {len(dirs) - len(todo)} up to date")
+        logger.info(f"{stage}: {len(todo)} of {len(dirs)} scenes to run, {len(dirs) - len(todo)} up to date")
     t0 = time.perf_counter()
     failed: list[str] = []
     work = [(stage, params, str(d)) for d in todo]
     jobs = max(1, min(int(jobs), len(work)))
     if stage == "render" and params.get("backend") == "cycles" and jobs > 1:
-        log(f"render: Cycles uses every core (or the GPU) itself, so the {len(work)} scenes run one at a time")
+        logger.info(f"render: Cycles uses every core (or the GPU) itself, so the {len(work)} scenes run one at a time")
         jobs = 1
     pool = None
     if jobs == 1:
@@ -338,10 +336,10 @@ def run_scenes(stage: str, params: dict, scene_dirs: list[Path], skip_up_to_date
         for k, (d, _, err) in enumerate(results, 1):
             if err:
                 failed.append(f"{d}: {err}")
-                log(f"{stage}: FAILED {d}: {err}")
+                logger.error(f"{stage}: FAILED {d}: {err}")
             if len(work) > 1:
                 el = time.perf_counter() - t0
-                log(f"{stage}: {k}/{len(work)} scenes, {k / el:.2f} scenes/s, ETA {(len(work) - k) * el / k:.0f} s")
+                logger.info(f"{stage}: {k}/{len(work)} scenes, {k / el:.2f} scenes/s, ETA {(len(work) - k) * el / k:.0f} s")
     except Exception as e:  # a worker killed (out of memory, a crash in a native library)
         from concurrent.futures.process import BrokenProcessPool
 
