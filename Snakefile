@@ -30,7 +30,6 @@ include: "rules/benchmark.smk"
 include: "rules/report.smk"
 
 
-
 rule all:
     default_target: True
     input:

@@ -6,14 +6,14 @@ rule benchmark:
         manifests=lambda wildcards: shard_files(config["train"]["dataset"], "scenes"),
     output:
         f"{RESULTS}/bench/{{arch}}.json",
-    params:
-        stage=benchmark_params,
-        results=results_param,
-    threads: all_cores
     log:
         f"{RESULTS}/bench/{{arch}}.log",
     conda:
         "../envs/train.yaml"
+    threads: all_cores
+    params:
+        stage=benchmark_params,
+        results=results_param,
     shell:
         "psdfactory benchmark --params {params.stage:q} --model {input.model:q} --results {params.results:q}"
         " --out {output:q} --threads {threads} > {log:q} 2>&1"

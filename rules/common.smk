@@ -25,7 +25,7 @@ except PsdError as e:
 # The jobs call the `psdfactory` CLI. When Snakemake runs from an unactivated virtualenv,
 # use the one installed beside the Python that runs Snakemake.
 if shutil.which("psdfactory") is None:
-    shell.prefix(f"set -euo pipefail; export PATH={os.path.dirname(sys.executable)!r}:\"$PATH\"; ")
+    shell.prefix(f'set -euo pipefail; export PATH={os.path.dirname(sys.executable)!r}:"$PATH"; ')
 
 RESULTS = config["results"].rstrip("/")  # every job that needs the results root gets it as --results
 DATASETS = list(config["datasets"])
@@ -175,7 +175,9 @@ def source_stamps(stage):
     """Input function of a batch job: the source batches' stamps of `stage` (re-render only)."""
 
     def inputs(wildcards):
-        found = source_scenes(wildcards.dataset, psd_config.batch_indices(config, wildcards.dataset, int(wildcards.batch)))
+        found = source_scenes(
+            wildcards.dataset, psd_config.batch_indices(config, wildcards.dataset, int(wildcards.batch))
+        )
         if found is None:
             return []
         batches = sorted({i // config["scenes_per_job"] for i in found[1]})
@@ -195,8 +197,10 @@ def shard_inputs(wildcards):
         batches = psd_config.shard_batches(config, wildcards.dataset, int(wildcards.shard))
         return {"stamps": [batch_stamp_of(wildcards.dataset, "label", b) for b in batches]}
     dirs = shard_scene_dirs(wildcards)
-    return {name: [f"{d}/{name}.{ext}" for d in dirs]
-            for name, ext in (("labels", "json"), ("particles", "parquet"), ("image", "png"))}
+    return {
+        name: [f"{d}/{name}.{ext}" for d in dirs]
+        for name, ext in (("labels", "json"), ("particles", "parquet"), ("image", "png"))
+    }
 
 
 def shard_files(dataset, table):

@@ -18,15 +18,15 @@ rule evaluate:
             category="Training",
             subcategory="{arch}",
         ),
-    params:
-        stage=evaluate_params,
-        results=results_param,
-        out_dir=lambda wildcards, output: os.path.dirname(output.metrics),
-    threads: all_cores
     log:
         f"{RESULTS}/eval/{{arch}}/evaluate.log",
     conda:
         "../envs/train.yaml"
+    threads: all_cores
+    params:
+        stage=evaluate_params,
+        results=results_param,
+        out_dir=lambda wildcards, output: os.path.dirname(output.metrics),
     shell:
         "psdfactory evaluate --params {params.stage:q} --model {input.model:q} --results {params.results:q}"
         " --out-dir {params.out_dir:q} --history {input.history:q} --threads {threads} > {log:q} 2>&1"
@@ -40,12 +40,12 @@ rule ceiling:
         particles=dataset_shards("particles"),
     output:
         f"{RESULTS}/{{dataset}}/ceiling.json",
-    params:
-        stage=ceiling_params,
     log:
         f"{RESULTS}/{{dataset}}/logs/ceiling.log",
     conda:
         "../envs/scene.yaml"
+    params:
+        stage=ceiling_params,
     shell:
         "psdfactory ceiling --params {params.stage:q} --dataset {wildcards.dataset} --scenes {input.scenes:q}"
         " --particles {input.particles:q} --out {output:q} > {log:q} 2>&1"

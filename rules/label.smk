@@ -9,13 +9,13 @@ rule label:
     output:
         labels=scene_path("labels.json"),
         particles=scene_path("particles.parquet"),
-    params:
-        stage=label_params,
-        scene_dir=lambda wildcards, input: os.path.dirname(input.spec),
     log:
         log_path("label"),
     conda:
         "../envs/scene.yaml"
+    params:
+        stage=label_params,
+        scene_dir=lambda wildcards, input: os.path.dirname(input.spec),
     shell:
         "psdfactory label --params {params.stage:q} {params.scene_dir:q} > {log:q} 2>&1"
 
@@ -26,14 +26,14 @@ rule label_batch:
         batch_stamp("render"),
     output:
         stamp=batch_stamp("label"),
-    params:
-        stage=label_params,
-        scene_dirs=batch_scene_dirs,
-    threads: all_cores
     log:
         batch_log("label"),
     conda:
         "../envs/scene.yaml"
+    threads: all_cores
+    params:
+        stage=label_params,
+        scene_dirs=batch_scene_dirs,
     shell:
         "psdfactory label --params {params.stage:q} --skip-up-to-date --jobs {threads}"
         " --stamp {output.stamp:q} {params.scene_dirs:q} > {log:q} 2>&1"

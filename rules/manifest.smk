@@ -4,14 +4,14 @@ rule manifest_shard:
     output:
         scenes=f"{RESULTS}/{{dataset}}/manifest/scenes/shard-{{shard}}.parquet",
         particles=f"{RESULTS}/{{dataset}}/manifest/particles/shard-{{shard}}.parquet",
-    params:
-        stage=manifest_params,
-        results=results_param,
-        scene_dirs=lambda wildcards, input: shard_scene_dirs(wildcards),
     log:
         f"{RESULTS}/{{dataset}}/logs/manifest/shard-{{shard}}.log",
     conda:
         "../envs/scene.yaml"
+    params:
+        stage=manifest_params,
+        results=results_param,
+        scene_dirs=lambda wildcards, input: shard_scene_dirs(wildcards),
     shell:
         "psdfactory manifest --params {params.stage:q} --results {params.results:q}"
         " --scenes-out {output.scenes:q} --particles-out {output.particles:q}"
@@ -28,13 +28,13 @@ rule contact_sheet:
             category="Datasets",
             subcategory="{dataset}",
         ),
-    params:
-        results=results_param,
-        n=config["show"]["n_scenes"],
     log:
         f"{RESULTS}/{{dataset}}/logs/contact_sheet.log",
     conda:
         "../envs/scene.yaml"
+    params:
+        results=results_param,
+        n=config["show"]["n_scenes"],
     shell:
         "psdfactory show --results {params.results:q} --dataset {wildcards.dataset}"
         " -n {params.n} --out {output:q} > {log:q} 2>&1"

@@ -7,15 +7,15 @@ rule render:
         image=scene_path("image.png"),
         mask=scene_path("mask.png"),
         meta=scene_path("render.json"),
-    params:
-        stage=render_params,
-        scene_dir=lambda wildcards, input: os.path.dirname(input.spec),
-    resources:
-        gpu=render_gpus,
     log:
         log_path("render"),
     conda:
         "../envs/scene.yaml"
+    resources:
+        gpu=render_gpus,
+    params:
+        stage=render_params,
+        scene_dir=lambda wildcards, input: os.path.dirname(input.spec),
     shell:
         "psdfactory render --params {params.stage:q} {params.scene_dir:q} > {log:q} 2>&1"
 
@@ -26,16 +26,16 @@ rule render_batch:
         batch_stamp("simulate"),
     output:
         stamp=batch_stamp("render"),
-    params:
-        stage=render_params,
-        scene_dirs=batch_scene_dirs,
-    threads: all_cores
-    resources:
-        gpu=render_gpus,
     log:
         batch_log("render"),
     conda:
         "../envs/scene.yaml"
+    threads: all_cores
+    resources:
+        gpu=render_gpus,
+    params:
+        stage=render_params,
+        scene_dirs=batch_scene_dirs,
     shell:
         "psdfactory render --params {params.stage:q} --skip-up-to-date --jobs {threads}"
         " --stamp {output.stamp:q} {params.scene_dirs:q} > {log:q} 2>&1"

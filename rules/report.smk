@@ -15,13 +15,13 @@ rule report:
             category="Report",
         ),
         md=f"{RESULTS}/report/report.md",
-    params:
-        config=lambda wildcards: as_json(config),
-        compare=lambda wildcards, input: ["--compare", *input.backends] if input.backends else [],
     log:
         f"{RESULTS}/report/report.log",
     conda:
         "../envs/train.yaml"
+    params:
+        config=lambda wildcards: as_json(config),
+        compare=lambda wildcards, input: ["--compare", *input.backends] if input.backends else [],
     shell:
         "psdfactory report --params {params.config:q} --metrics {input.metrics:q} --scatters {input.scatter:q}"
         " --histories {input.histories:q} --bench {input.bench:q} --manifests {input.manifests:q}"
@@ -40,16 +40,16 @@ rule compare_backends:
             category="Datasets",
         ),
         summary=f"{RESULTS}/report/backends/compare.json",
+    log:
+        f"{RESULTS}/report/backends/compare.log",
+    conda:
+        "../envs/scene.yaml"
     params:
         stage=lambda wildcards: as_json(psd_config.compare_params(config)),
         dataset=config["train"]["dataset"],
         n=config["show"]["compare_backends"],
         results=results_param,
         out_dir=lambda wildcards, output: os.path.dirname(output.figure),
-    log:
-        f"{RESULTS}/report/backends/compare.log",
-    conda:
-        "../envs/scene.yaml"
     shell:
         "psdfactory compare-backends --params {params.stage:q} --results {params.results:q}"
         " --dataset {params.dataset} -n {params.n} --out-dir {params.out_dir:q} > {log:q} 2>&1"

@@ -4,13 +4,13 @@ rule sample:
     output:
         spec=scene_path("spec.json"),
         geometry=scene_path("geometry.npz"),
-    params:
-        stage=sample_params,
-        scene_dir=lambda wildcards, output: os.path.dirname(output.spec),
     log:
         log_path("sample"),
     conda:
         "../envs/scene.yaml"
+    params:
+        stage=sample_params,
+        scene_dir=lambda wildcards, output: os.path.dirname(output.spec),
     shell:
         "psdfactory sample --params {params.stage:q} {params.scene_dir:q} > {log:q} 2>&1"
 
@@ -21,14 +21,14 @@ rule sample_batch:
         source_stamps("sample"),
     output:
         stamp=batch_stamp("sample"),
-    params:
-        stage=sample_batch_params,
-        scene_dirs=batch_scene_dirs,
-    threads: all_cores
     log:
         batch_log("sample"),
     conda:
         "../envs/scene.yaml"
+    threads: all_cores
+    params:
+        stage=sample_batch_params,
+        scene_dirs=batch_scene_dirs,
     shell:
         "psdfactory sample --params {params.stage:q} --skip-up-to-date --jobs {threads}"
         " --stamp {output.stamp:q} {params.scene_dirs:q} > {log:q} 2>&1"

@@ -6,13 +6,13 @@ rule simulate:
     output:
         poses=scene_path("poses.parquet"),
         quality=scene_path("simulate.json"),
-    params:
-        stage=simulate_params,
-        scene_dir=lambda wildcards, input: os.path.dirname(input.spec),
     log:
         log_path("simulate"),
     conda:
         "../envs/scene.yaml"
+    params:
+        stage=simulate_params,
+        scene_dir=lambda wildcards, input: os.path.dirname(input.spec),
     shell:
         "psdfactory simulate --params {params.stage:q} {params.scene_dir:q} > {log:q} 2>&1"
 
@@ -24,14 +24,14 @@ rule simulate_batch:
         source_stamps("simulate"),
     output:
         stamp=batch_stamp("simulate"),
-    params:
-        stage=simulate_params,
-        scene_dirs=batch_scene_dirs,
-    threads: all_cores
     log:
         batch_log("simulate"),
     conda:
         "../envs/scene.yaml"
+    threads: all_cores
+    params:
+        stage=simulate_params,
+        scene_dirs=batch_scene_dirs,
     shell:
         "psdfactory simulate --params {params.stage:q} --skip-up-to-date --jobs {threads}"
         " --stamp {output.stamp:q} {params.scene_dirs:q} > {log:q} 2>&1"

@@ -4,15 +4,15 @@ rule train:
     output:
         model=f"{RESULTS}/models/{{arch}}/model.pt",
         history=f"{RESULTS}/models/{{arch}}/history.csv",
-    params:
-        stage=train_params,
-        results=results_param,
-        out_dir=lambda wildcards, output: os.path.dirname(output.model),
-    threads: all_cores
     log:
         f"{RESULTS}/models/{{arch}}/train.log",
     conda:
         "../envs/train.yaml"
+    threads: all_cores
+    params:
+        stage=train_params,
+        results=results_param,
+        out_dir=lambda wildcards, output: os.path.dirname(output.model),
     shell:
         "psdfactory train --params {params.stage:q} --results {params.results:q}"
         " --out-dir {params.out_dir:q} --threads {threads} > {log:q} 2>&1"
