@@ -33,8 +33,8 @@ def main() -> None:
 
     from psdfactory import config as psd_config
     from psdfactory.io import read_json, read_png
-    from psdfactory.scene.stages import run_render, run_sample, run_simulate
     from psdfactory.scene.show import mask_agreement
+    from psdfactory.scene.stages import run_render, run_sample, run_simulate
 
     cfg = psd_config.load_config(REPO / "config" / "paper.yaml")
     cfg["render"]["resolution"] = a.resolution
@@ -64,13 +64,16 @@ def main() -> None:
                   f"(path tracing {row['path_tracing']:.1f} s on {row['device']}), masks agree "
                   f"{100 * row['agree']:.1f} % ({100 * row['agree_off_edges']:.2f} % off edges)", flush=True)
 
-    med = lambda k: statistics.median(r[k] for r in rows)  # noqa: E731
+    def med(k: str) -> float:
+        return statistics.median(r[k] for r in rows)
+
     print(f"\n{a.resolution}² px, Cycles {a.samples} samples, denoiser {'off' if a.no_denoise else 'on'}, "
           f"median of {len(rows)} scenes:")
     print(f"  tiny   {med('tiny'):6.2f} s/scene")
     print(f"  cycles {med('cycles'):6.2f} s/scene (path tracing {med('path_tracing'):.2f} s; the rest is Blender's "
           f"start-up, scene building and I/O) — {med('cycles') / med('tiny'):.0f}× the fast backend")
-    print(f"  masks agree on {100 * med('agree'):.1f} % of pixels, {100 * med('agree_off_edges'):.2f} % away from edges")
+    print(f"  masks agree on {100 * med('agree'):.1f} % of pixels, "
+          f"{100 * med('agree_off_edges'):.2f} % away from edges")
     print(json.dumps({"rows": rows}))
 
 

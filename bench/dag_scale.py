@@ -42,7 +42,8 @@ def config(n: int, results: Path, shard: int = 250, per_job: int = 1) -> dict:
 
 def run(args: list[str], work: Path) -> tuple[float, str]:
     t0 = time.perf_counter()
-    r = subprocess.run([SNAKEMAKE, "-s", str(REPO / "Snakefile"), "-d", str(work), *args], capture_output=True, text=True)
+    r = subprocess.run([SNAKEMAKE, "-s", str(REPO / "Snakefile"), "-d", str(work), *args],
+                       capture_output=True, text=True)
     dt = time.perf_counter() - t0
     if r.returncode != 0:
         sys.exit(f"snakemake failed:\n{r.stderr[-2000:]}")

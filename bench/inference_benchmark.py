@@ -4,7 +4,8 @@
 Times the plain fp32 eager model and every candidate path for this hardware (channels-last,
 bf16 autocast where the CPU has native bf16, fp32 and int8 ONNX Runtime) side by side in one
 run (medians of repeated runs), at batch 1 and batched, reports the fastest, prints which CPU
-and features it ran on (ATEN_CPU_CAPABILITY=avx2 forces PyTorch's portable path), and compares with the paper's 8-core CPU
+and features it ran on (ATEN_CPU_CAPABILITY=avx2 forces PyTorch's portable path), and compares with the paper's
+8-core CPU
 figures and this project's goal (3× the paper, batched). Speed does not depend on the weights,
 so untrained models are timed; pass --results to also measure the accuracy change of the fast
 path with the trained models of a workflow run (results/models/<arch>/model.pt).
@@ -70,12 +71,13 @@ def main() -> None:
         goal = 3 * paper if paper else None
         met = "–" if goal is None else ("yes" if s["batched"]["images_per_s"] >= goal else "no")
         acc = f"{r['r2_fp32']:.4f} → {r['r2_fast']:.4f}" if "r2_fast" in r else "–"
-        print(f"| {arch} | {size} | {f['batch1']['images_per_s']:.1f} | {f['batched']['images_per_s']:.1f} | {s['name']} "
-              f"| {s['batch1']['images_per_s']:.1f} | {s['batched']['images_per_s']:.1f} | {s['batched']['ms_per_image']:.2f} "
+        print(f"| {arch} | {size} | {f['batch1']['images_per_s']:.1f} | {f['batched']['images_per_s']:.1f} "
+              f"| {s['name']} | {s['batch1']['images_per_s']:.1f} | {s['batched']['images_per_s']:.1f} "
+              f"| {s['batched']['ms_per_image']:.2f} "
               f"| {r['speedup_batched']:.2f}× | {paper or '–'} | {goal and round(goal, 1) or '–'} | {met} "
               f"| {r['params_m']:.1f} | {r['gflops']:.2f} | {acc} |")
     print("\nEvery path, batched images/s (and overall R² with the trained models):")
-    for arch, size, r in rows:
+    for arch, _, r in rows:
         paths = {k: v for k, v in r["paths"].items() if k != "fast"}
         print(f"  {arch}: " + ", ".join(
             f"{v['name']} {v['batched']['images_per_s']:.1f}" + (f" (R² {r['r2_all'][k]:.4f})" if "r2_all" in r else "")

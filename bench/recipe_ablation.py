@@ -59,7 +59,8 @@ def main() -> None:
     ceilings = {}
     for d in evals:
         m = root / d / "manifest"
-        c = ceilings_from_manifests(sorted((m / "scenes").glob("*.parquet")), sorted((m / "particles").glob("*.parquet")),
+        c = ceilings_from_manifests(sorted((m / "scenes").glob("*.parquet")),
+                                    sorted((m / "particles").glob("*.parquet")),
                                     tuple(cfg["datasets"][d]["size"]["bounds"]), cfg["labels"]["visible_min_px"])
         ceilings[d] = c["visible"]
         if c["visible"]:

@@ -66,7 +66,8 @@ def startup_cost(repeats: int = 5) -> float:
 
 
 def import_cost(repeats: int = 5) -> float:
-    code = "import psdfactory.scene.stages, psdfactory.scene.physics, psdfactory.scene.render, pybullet, scipy.ndimage, pyarrow.parquet"
+    code = ("import psdfactory.scene.stages, psdfactory.scene.physics, psdfactory.scene.render, pybullet, "
+            "scipy.ndimage, pyarrow.parquet")
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from psdfactory import config as psd_config
+from psdfactory.io import read_json, read_png
 from psdfactory.learn.augment import augment_d4, photometric, rescale, rescale_one
 from psdfactory.learn.data import to_input
-from psdfactory.io import read_json, read_png
 from psdfactory.scene.render import render_scene
 from psdfactory.scene.render.look import RenderParams
 from psdfactory.scene.stages import load_geometry, load_poses

@@ -8,8 +8,8 @@ import sys
 import pytest
 import torch
 
-from psdfactory.learn import capability
 from psdfactory.deploy.benchmark import candidates
+from psdfactory.learn import capability
 
 
 def _detect_with(env: dict) -> dict:

@@ -4,8 +4,7 @@ import numpy as np
 import pytest
 
 from psdfactory import PsdError
-from psdfactory.learn.ceiling import (TARGETS, cross_validated_r2, dataset_ceilings, sampling_features,
-                                visible_features)
+from psdfactory.learn.ceiling import TARGETS, cross_validated_r2, dataset_ceilings, sampling_features, visible_features
 from psdfactory.psd import weighted_percentiles
 
 
@@ -46,7 +45,7 @@ def _scenes(n, hide_small=0.0, seed=1):
         sizes = np.clip(rng.normal(mu, sd, 300), 0.5, None)
         vis = np.where(sizes < hide_small, 0, 10)
         d = weighted_percentiles(sizes, None)
-        scenes.append({"scene_id": f"s{i}", **dict(zip(TARGETS, d)), "size_mean": mu, "size_sigma": sd})
+        scenes.append({"scene_id": f"s{i}", **dict(zip(TARGETS, d, strict=True)), "size_mean": mu, "size_sigma": sd})
         particles[f"s{i}"] = (sizes, vis)
     return scenes, particles
 

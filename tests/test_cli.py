@@ -9,6 +9,7 @@ import pytest
 from psdfactory import config as psd_config
 from psdfactory.cli import main
 
+
 def _label_args(cfg, d):
     return ["label", "--params", json.dumps(psd_config.label_params(cfg)), str(d)]
 
@@ -50,7 +51,8 @@ def test_bad_params_json(tmp_path, capsys):
 def test_cli_entry_point_runs_without_torch():
     exe = Path(sys.executable).with_name("psdfactory")
     r = subprocess.run(
-        [sys.executable, "-X", "importtime", "-c", "import psdfactory.cli, psdfactory.scene.stages, psdfactory.scene.sampling, "
+        [sys.executable, "-X", "importtime", "-c",
+         "import psdfactory.cli, psdfactory.scene.stages, psdfactory.scene.sampling, "
          "psdfactory.scene.physics, psdfactory.scene.render, psdfactory.scene.labels, psdfactory.scene.show"],
         capture_output=True, text=True,
     )
@@ -70,7 +72,8 @@ def test_show_contact_sheet(tiny_results, tmp_path):
     shutil.copytree(root, res)
     dirs = sorted((res / "tiny" / "scenes").iterdir())
     m = res / "tiny" / "manifest"
-    write_shard(dirs, res, {"train": 1.0}, m / "scenes" / "shard-00000.parquet", m / "particles" / "shard-00000.parquet")
+    write_shard(dirs, res, {"train": 1.0}, m / "scenes" / "shard-00000.parquet",
+                m / "particles" / "shard-00000.parquet")
     out = contact_sheet(res, "tiny", tmp_path / "sheet.png", n=2)
     from PIL import Image
 
@@ -98,8 +101,8 @@ def test_log_levels_flags_and_format(tmp_path, capsys, flags, shown, hidden):
     assert "psdfactory check-config: error: config file not found" in err  # the verdict, at any level
     for level in shown:
         (line,) = _log_lines(err, level)
-        assert re.match(rf"\d{{4}}-\d\d-\d\d \d\d:\d\d:\d\d {level} psdfactory\.scene\.stages: a {level.lower()} record$",
-                        line), line
+        when = r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d"
+        assert re.match(rf"{when} {level} psdfactory\.scene\.stages: a {level.lower()} record$", line), line
     for level in hidden:
         assert not _log_lines(err, level)
     assert bool(re.search(r"DEBUG psdfactory\.cli: psdfactory .*arguments", err)) == ("DEBUG" in shown)

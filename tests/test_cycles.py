@@ -15,8 +15,8 @@ from scipy import ndimage
 
 from psdfactory import PsdError
 from psdfactory import config as psd_config
-from psdfactory.scene.render.cycles import DEFAULT_PYTHON, blender_python
 from psdfactory.io import read_json, read_png
+from psdfactory.scene.render.cycles import DEFAULT_PYTHON, blender_python
 from psdfactory.scene.stages import run_render
 
 HAVE_BLENDER = bool(os.environ.get("PSD_BLENDER_PYTHON")) or DEFAULT_PYTHON.is_file()
@@ -82,7 +82,8 @@ def test_cycles_is_deterministic(both, tmp_path):
     _, cyc = both
     again = tmp_path / "again"
     shutil.copytree(cyc, again)
-    cfg = psd_config.validate({"datasets": {"tiny": {"n_scenes": 1}}, "render": {"resolution": 64}, "train": {"dataset": "tiny"}})
+    cfg = psd_config.validate({"datasets": {"tiny": {"n_scenes": 1}}, "render": {"resolution": 64},
+                               "train": {"dataset": "tiny"}})
     params = psd_config.render_params(cycles_config(cfg))
     run_render(params, again)
     np.testing.assert_array_equal(read_png(cyc / "mask.png"), read_png(again / "mask.png"))

@@ -31,7 +31,8 @@ def test_head_starts_at_training_means():
     torch.testing.assert_close(out, torch.tensor(STATS.mean, dtype=torch.float32), atol=1e-3, rtol=0)
 
 
-@pytest.mark.parametrize("arch,size", [("resnet18", 64), ("efficientnet_b0", 64), ("mobilenet_v3_small", 64), ("inception_v3", 75)])
+@pytest.mark.parametrize("arch,size", [("resnet18", 64), ("efficientnet_b0", 64), ("mobilenet_v3_small", 64),
+                                       ("inception_v3", 75)])
 def test_models_regress_three_ordered_mm_values(arch, size):
     model, used = build_model(arch, STATS, "none", size=size)
     assert used.startswith("none")

@@ -5,6 +5,7 @@ import pytest
 
 from psdfactory import PsdError
 from psdfactory import config as psd_config
+from psdfactory.scene.geometry import Geometry
 from psdfactory.scene.physics import (
     PhysicsParams,
     QualityBounds,
@@ -16,7 +17,6 @@ from psdfactory.scene.physics import (
     spawn_heights,
 )
 from psdfactory.scene.sampling import SampleParams, sample_scene
-from psdfactory.scene.geometry import Geometry
 
 from .conftest import tiny_config
 

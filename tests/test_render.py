@@ -7,6 +7,7 @@ from psdfactory.scene.render.look import RenderParams
 from psdfactory.scene.render.tiny import downsample, shade_from_height
 from psdfactory.scene.stages import load_poses
 
+
 @pytest.mark.slow
 def test_image_and_mask_files(tiny_results):
     cfg, root = tiny_results

@@ -25,7 +25,8 @@ def test_inputs_are_matched_to_the_configured_architectures_and_datasets():
     with pytest.raises(PsdError, match="scatters: 1 files for 2 entries"):
         ReportInputs.from_lists(cfg, two, ["a.png"], ["a.csv", "b.csv"], two, ["s.parquet"])
     with pytest.raises(PsdError, match="contact sheets"):
-        ReportInputs.from_lists(cfg, two, ["a.png", "b.png"], ["a.csv", "b.csv"], two, ["s.parquet"], ["x.png", "y.png"])
+        ReportInputs.from_lists(cfg, two, ["a.png", "b.png"], ["a.csv", "b.csv"], two, ["s.parquet"],
+                                ["x.png", "y.png"])
 
 
 def _fake_results(root, arch: str) -> dict:
@@ -61,7 +62,8 @@ def test_report_reads_the_named_files_only(tiny_results, tmp_path):
     shard = m / "scenes" / "shard-00000.parquet"
     write_shard(dirs[:2], res, {"test": 1.0}, shard, m / "particles" / "shard-00000.parquet")
     # a stale shard in the same folder (say, from a run with more scenes): not named, not read
-    write_shard(dirs[2:], res, {"test": 1.0}, m / "scenes" / "shard-00001.parquet", m / "particles" / "shard-00001.parquet")
+    write_shard(dirs[2:], res, {"test": 1.0}, m / "scenes" / "shard-00001.parquet",
+                m / "particles" / "shard-00001.parquet")
     files = _fake_results(tmp_path / "model", "resnet18")
     image = dirs[0] / "image.png"
     cfg = dict(cfg, train=dict(cfg["train"], architectures=["resnet18"]))
@@ -83,7 +85,8 @@ def test_report_reads_the_named_files_only(tiny_results, tmp_path):
 
 
 def _metrics(r2s):
-    per = {n: {"r2": r, "mse": 1.0, "mae": 0.5, "rel_err": 0.1} for n, r in zip(("d10", "d50", "d90"), r2s)}
+    per = {n: {"r2": r, "mse": 1.0, "mae": 0.5, "rel_err": 0.1}
+           for n, r in zip(("d10", "d50", "d90"), r2s, strict=True)}
     return {**per, "overall": {"r2": 0.98, "mse": 1.0, "mae": 0.5}, "order_violations": 0.0}
 
 

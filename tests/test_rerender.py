@@ -1,6 +1,7 @@
 """Re-render datasets: the scenes of another dataset rendered again, nothing simulated."""
 
 import filecmp
+
 import pytest
 
 from psdfactory import PsdError
@@ -55,7 +56,8 @@ def test_rerendered_scenes_reuse_particles_poses_and_labels(tmp_path):
         make_scene(cfg, root / "tiny" / "scenes" / f"tiny-{i:06d}", index=i)
     dirs = [root / "again" / "scenes" / f"again-{k:06d}" for k in range(cfg["datasets"]["again"]["n_scenes"])]
     for stage in ("sample", "simulate", "render", "label"):
-        params = getattr(psd_config, f"{stage}_params")(cfg, "again") if stage != "label" else psd_config.label_params(cfg)
+        params = (getattr(psd_config, f"{stage}_params")(cfg, "again") if stage != "label"
+                  else psd_config.label_params(cfg))
         run_scenes(stage, params, dirs)
     for k, d in enumerate(dirs):
         spec = read_json(d / "spec.json")
@@ -66,7 +68,8 @@ def test_rerendered_scenes_reuse_particles_poses_and_labels(tmp_path):
         for f in ("geometry.npz", "poses.parquet"):
             assert filecmp.cmp(d / f, src / f, shallow=False), f
         a, b = read_json(d / "labels.json"), read_json(src / "labels.json")
-        assert [a[k] for k in ("d10_mm", "d50_mm", "d90_mm", "d50_v_mm")] == [b[k] for k in ("d10_mm", "d50_mm", "d90_mm", "d50_v_mm")]
+        same = ("d10_mm", "d50_mm", "d90_mm", "d50_v_mm")
+        assert [a[k] for k in same] == [b[k] for k in same]
         assert a["resolution"] == 48 and b["resolution"] == 64
     scenes, _ = build_shard(dirs, root, cfg["datasets"]["again"]["split"])
     assert set(scenes.column("split").to_pylist()) == {"test"}

@@ -9,7 +9,8 @@ from psdfactory.scene.sampling import SampleParams, drop_positions, sample_scene
 from .conftest import tiny_config
 
 
-@pytest.mark.parametrize("mean,sigma,lo,hi", [(9.0, 7.0, 0.1, 20.0), (6.0, 8.0, 0.1, 20.0), (3.0, 1.0, 2.5, 4.0), (2.0, 3.0, 5.0, 15.0), (9.0, 0.5, 0.1, 8.0)])
+@pytest.mark.parametrize("mean,sigma,lo,hi", [(9.0, 7.0, 0.1, 20.0), (6.0, 8.0, 0.1, 20.0), (3.0, 1.0, 2.5, 4.0),
+                                               (2.0, 3.0, 5.0, 15.0), (9.0, 0.5, 0.1, 8.0)])
 def test_truncnormal_matches_scipy(mean, sigma, lo, hi):
     rng = np.random.default_rng(0)
     x = truncnormal_sizes(rng, 20000, mean, sigma, lo, hi)

@@ -14,6 +14,7 @@ from psdfactory.scene.stages import record_path, run_scenes, up_to_date
 
 from .conftest import tiny_config
 
+
 @pytest.fixture()
 def sampled(tmp_path):
     cfg = tiny_config(count=[10, 14])

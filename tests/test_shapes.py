@@ -26,7 +26,7 @@ def test_size_is_intermediate_dimension_and_volume_is_exact(family):
     rng = np.random.default_rng(1)
     sizes = np.array([2.0, 7.5, 15.0])
     parts = make_particles(family, sizes, rng, ShapeParams.for_family(family))
-    for p, s in zip(parts, sizes):
+    for p, s in zip(parts, sizes, strict=True):
         dims = principal_dims(p.vertices)
         assert dims[1] == pytest.approx(s, rel=1e-9)
         assert dims[0] >= dims[1] >= dims[2] > 0
@@ -44,7 +44,8 @@ def test_ellipsoid_volume_close_to_analytic():
 
 
 def test_crushed_rocks_are_unique():
-    parts = make_particles("crushed_rock", np.full(5, 8.0), np.random.default_rng(3), ShapeParams.for_family("crushed_rock"))
+    parts = make_particles("crushed_rock", np.full(5, 8.0), np.random.default_rng(3),
+                           ShapeParams.for_family("crushed_rock"))
     vols = [p.volume_mm3 for p in parts]
     assert len(set(np.round(vols, 6))) == 5
 

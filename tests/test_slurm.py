@@ -94,7 +94,8 @@ def test_failing_job_is_retried_then_the_run_fails(cluster, tmp_path):
     cfg["datasets"]["train"]["n_scenes"] = 1
     cfg["physics"] = {"max_time_s": 0.01, "retries": 0, "quality": {"min_settled_fraction": 1.0}}
     cfg["results"] = str(tmp_path / "results")
-    r = snakemake("scenes", "--profile", str(REPO / "slurm"), "--configfile", str(write_config(tmp_path / "c.yaml", cfg)),
+    cfgfile = str(write_config(tmp_path / "c.yaml", cfg))
+    r = snakemake("scenes", "--profile", str(REPO / "slurm"), "--configfile", cfgfile,
                   "--slurm-init-seconds-before-status-checks", "2", "--latency-wait", "5", "--retries", "1",
                   workdir=tmp_path, env=cluster)
     assert r.returncode != 0

@@ -127,8 +127,8 @@ def test_needs_train_and_val(dataset, tmp_path):
 @pytest.mark.slow
 def test_evaluate_benchmark_report(dataset, trained, tmp_path):
     from psdfactory.deploy.benchmark import benchmark
-    from psdfactory.learn.evaluate import evaluate, plot_history
     from psdfactory.io import write_json
+    from psdfactory.learn.evaluate import evaluate, plot_history
     from psdfactory.report import ReportInputs, build_report
 
     model_dir, _ = trained
@@ -203,7 +203,8 @@ def test_predict_good_and_bad_files(dataset, trained, tmp_path, capsys):
     assert "expects images at" in captured.err and "2 of 4 images could not be read" in captured.err
     # the same image given with its scale: rescaled to the model's scale, same prediction
     px = json.loads((dataset / "tiny" / "scenes" / "tiny-000008" / "render.json").read_text())["mm_per_px"]
-    assert main(["predict", "--model", str(model), "--mm-per-px", str(px), "--out", str(tmp_path / "p.csv"), str(imgs / "a.png")]) == 0
+    assert main(["predict", "--model", str(model), "--mm-per-px", str(px), "--out", str(tmp_path / "p.csv"),
+                 str(imgs / "a.png")]) == 0
     line = (tmp_path / "p.csv").read_text().splitlines()[1].split(",")
     assert float(line[2]) == pytest.approx(good[0]["d50_mm"], rel=1e-4)
 
@@ -352,12 +353,12 @@ def capabilities(request, monkeypatch):
 
 @pytest.mark.slow
 def test_benchmark_report_and_predict_in_every_capability_combination(dataset, trained, capabilities, tmp_path):
-    from psdfactory.deploy.benchmark import benchmark
     from psdfactory.cli import main
-    from psdfactory.learn.evaluate import evaluate
+    from psdfactory.deploy.benchmark import benchmark
     from psdfactory.io import write_json
-    from psdfactory.report import ReportInputs, build_report
+    from psdfactory.learn.evaluate import evaluate
     from psdfactory.learn.runtime import pick_precision
+    from psdfactory.report import ReportInputs, build_report
 
     root = tmp_path / "res"
     shutil.copytree(dataset, root)

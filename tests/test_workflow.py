@@ -11,7 +11,8 @@ from psdfactory.scene.render.cycles import DEFAULT_PYTHON
 from .workflow_helpers import REPO, snakemake, write_config
 
 # the report's side-by-side of both render backends needs Blender (`make test` installs it)
-COMPARE = 2 if DEFAULT_PYTHON.is_file() or os.environ.get("PSD_BLENDER_PYTHON") or os.environ.get("PSD_REQUIRE_BLENDER") else 0
+HAS_BLENDER = DEFAULT_PYTHON.is_file() or os.environ.get("PSD_BLENDER_PYTHON") or os.environ.get("PSD_REQUIRE_BLENDER")
+COMPARE = 2 if HAS_BLENDER else 0
 
 pytestmark = pytest.mark.workflow
 
@@ -44,7 +45,8 @@ TINY = {
 def test_tiny_workflow_end_to_end(tmp_path):
     cfgfile = write_config(tmp_path / "tiny.yaml", dict(TINY, results=str(tmp_path / "results")))
     # PyTorch's portable path, as on a CPU without AVX-512/bf16/VNNI: the run must not care
-    r = snakemake("-j2", "--configfile", str(cfgfile), workdir=tmp_path, env={**os.environ, "ATEN_CPU_CAPABILITY": "avx2"})
+    r = snakemake("-j2", "--configfile", str(cfgfile), workdir=tmp_path,
+                  env={**os.environ, "ATEN_CPU_CAPABILITY": "avx2"})
     assert r.returncode == 0, r.stderr[-3000:]
     res = tmp_path / "results"
     scenes = pq.read_table(res / "train" / "manifest" / "scenes")
@@ -57,7 +59,8 @@ def test_tiny_workflow_end_to_end(tmp_path):
     assert len(again) == len(test) == 1 and again[0]["d50_mm"] == test[0]["d50_mm"]
     assert again[0]["render_backend"] == ("cycles" if COMPARE else "tiny")
     src = res / "train" / "scenes" / test[0]["scene_id"]
-    assert (res / "again" / "scenes" / "again-000000" / "poses.parquet").read_bytes() == (src / "poses.parquet").read_bytes()
+    copied = res / "again" / "scenes" / "again-000000" / "poses.parquet"
+    assert copied.read_bytes() == (src / "poses.parquet").read_bytes()
     assert "takes its settled poses from" in (res / "again" / "logs" / "simulate" / "again-000000.log").read_text()
     for ds in ("train", "ood", "again"):
         assert json.loads((res / ds / "ceiling.json").read_text())["n_scenes"] >= 1

@@ -35,7 +35,8 @@ def cmd_manifest(a: argparse.Namespace) -> None:
     from .manifest import write_shard
 
     fractions = _params(a.params)["split"]
-    scenes = write_shard([Path(d) for d in a.scene_dirs], Path(a.results), fractions, Path(a.scenes_out), Path(a.particles_out))
+    scenes = write_shard([Path(d) for d in a.scene_dirs], Path(a.results), fractions, Path(a.scenes_out),
+                         Path(a.particles_out))
     logger.info(f"wrote {a.scenes_out}: {scenes.num_rows} scenes")
 
 
@@ -51,8 +52,9 @@ def cmd_compare_backends(a: argparse.Namespace) -> None:
 
     summary = compare_backends(Path(a.results), a.dataset, a.n, _params(a.params), Path(a.out_dir))
     for r in summary["scenes"]:
-        logger.info(f"{r['scene_id']}: tiny {r['seconds_tiny']:.1f} s, cycles {r['seconds_cycles']:.1f} s, masks agree on "
-              f"{100 * r['mask_agreement']:.1f} % of pixels ({100 * r['mask_agreement_off_edges']:.2f} % off edges)")
+        logger.info(f"{r['scene_id']}: tiny {r['seconds_tiny']:.1f} s, cycles {r['seconds_cycles']:.1f} s, "
+                    f"masks agree on {100 * r['mask_agreement']:.1f} % of pixels "
+                    f"({100 * r['mask_agreement_off_edges']:.2f} % off edges)")
 
 
 def cmd_check_config(a: argparse.Namespace) -> None:
@@ -248,13 +250,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("images", nargs="+", help="image files and/or folders of images")
     p.set_defaults(func=cmd_predict)
 
-    p = sub.add_parser("export", help="write the model as ONNX and TorchScript (and int8 ONNX), checked against PyTorch")
+    p = sub.add_parser("export",
+                       help="write the model as ONNX and TorchScript (and int8 ONNX), checked against PyTorch")
     p.add_argument("--model", required=True)
     p.add_argument("--out-dir", required=True)
-    p.add_argument("--int8", metavar="RESULTS", help="also model.int8.onnx, calibrated on this results root's training images")
+    p.add_argument("--int8", metavar="RESULTS",
+                   help="also model.int8.onnx, calibrated on this results root's training images")
     p.add_argument("--dataset", default="train", help="dataset to calibrate and check int8 on")
     p.add_argument("--int8-max-r2-change", type=float, default=None,
-                   help="refuse the int8 model if its overall R² on the test split moves more than this (default: the benchmark's accuracy budget)")
+                   help="refuse the int8 model if its overall R² on the test split moves more than this "
+                        "(default: the benchmark's accuracy budget)")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("compare-backends", help="render a few scenes with both backends, side by side")

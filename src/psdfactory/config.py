@@ -22,7 +22,8 @@ def validate(config: dict) -> dict:
     from snakemake.exceptions import WorkflowError
     from snakemake.utils import validate as sm_validate
 
-    extra = [f"datasets.{n}: a re-render takes its scenes from its source; drop {', '.join(sorted(set(ds) - RERENDER_KEYS))}"
+    extra = [f"datasets.{n}: a re-render takes its scenes from its source; "
+             f"drop {', '.join(sorted(set(ds) - RERENDER_KEYS))}"
              for n, ds in (config.get("datasets") or {}).items()
              if isinstance(ds, dict) and "rerender_of" in ds and set(ds) - RERENDER_KEYS]
     if extra:
@@ -206,7 +207,8 @@ def semantic_problems(config: dict) -> list[str]:
     t = config["train"]
     _ordered("train.scale_augment", t["scale_augment"], problems)
     if t["dataset"] not in config["datasets"]:
-        problems.append(f"train.dataset: {t['dataset']!r} is not one of the configured datasets ({', '.join(config['datasets'])})")
+        problems.append(f"train.dataset: {t['dataset']!r} is not one of the configured datasets "
+                        f"({', '.join(config['datasets'])})")
     else:
         split = config["datasets"][t["dataset"]]["split"]
         for s in ("train", "val"):
@@ -261,8 +263,8 @@ def simulate_params(config: dict, dataset: str | None = None) -> dict:
 
 
 def render_params(config: dict, dataset: str | None = None) -> dict:
-    """A dataset's render slice (the top-level one without a dataset); the Cycles settings only when that backend renders (so editing
-    them does not rerun the fast backend's renders)."""
+    """A dataset's render slice (the top-level one without a dataset); the Cycles settings only
+    when that backend renders (so editing them does not rerun the fast backend's renders)."""
     out = copy.deepcopy(dataset_render(config, dataset) if dataset else config["render"])
     if out["backend"] != "cycles":
         out.pop("cycles", None)
@@ -314,8 +316,10 @@ def shard_batches(config: dict, dataset: str, shard: int) -> range:
 def train_params(config: dict, arch: str) -> dict:
     t = config["train"]
     keys = ("dataset", "pretrained", "epochs", "batch_size", "lr", "weight_decay", "lr_factor", "lr_patience",
-            "early_stopping_patience", "precision", "device", "aux_loss_weight", "augment", "scale_augment", "photometric")
+            "early_stopping_patience", "precision", "device", "aux_loss_weight", "augment", "scale_augment",
+            "photometric")
     out = {k: t[k] for k in keys}
-    out.update(arch=arch, seed=config["seed"], input_size=int(t["input_size"].get(arch, DEFAULT_INPUT_SIZE.get(arch, 224))))
+    size = t["input_size"].get(arch, DEFAULT_INPUT_SIZE.get(arch, 224))
+    out.update(arch=arch, seed=config["seed"], input_size=int(size))
     return out
 

@@ -5,13 +5,17 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from . import PsdError
+
+if TYPE_CHECKING:
+    import pyarrow
 
 
 @contextmanager
@@ -75,14 +79,14 @@ def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
         raise PsdError(f"{path} is corrupt ({e}); delete it and rerun the job that makes it") from None
 
 
-def write_parquet(path: str | os.PathLike, table: "pyarrow.Table") -> None:  # noqa: F821
+def write_parquet(path: str | os.PathLike, table: pyarrow.Table) -> None:
     import pyarrow.parquet as pq
 
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp, compression="zstd")
 
 
-def read_parquet(path: str | os.PathLike) -> "pyarrow.Table":  # noqa: F821
+def read_parquet(path: str | os.PathLike) -> pyarrow.Table:
     import pyarrow.parquet as pq
 
     path = Path(path)

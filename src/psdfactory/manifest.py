@@ -85,7 +85,8 @@ def build_shard(scene_dirs: list[Path], results_root: Path, fractions: dict[str,
     return scenes, parts
 
 
-def write_shard(scene_dirs: list[Path], results_root: Path, fractions: dict[str, float], scenes_out: Path, particles_out: Path) -> pa.Table:
+def write_shard(scene_dirs: list[Path], results_root: Path, fractions: dict[str, float], scenes_out: Path,
+                particles_out: Path) -> pa.Table:
     scenes, parts = build_shard(scene_dirs, results_root, fractions)
     write_parquet(particles_out, parts)
     write_parquet(scenes_out, scenes)

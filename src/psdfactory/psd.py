@@ -15,7 +15,8 @@ from . import PsdError
 PERCENTILES = (10.0, 50.0, 90.0)
 
 
-def weighted_percentiles(values: np.ndarray, weights: np.ndarray | None, q: tuple[float, ...] = PERCENTILES) -> np.ndarray:
+def weighted_percentiles(values: np.ndarray, weights: np.ndarray | None,
+                         q: tuple[float, ...] = PERCENTILES) -> np.ndarray:
     """Percentiles (q in 0..100) of `values` weighted by `weights` (midpoint convention)."""
     values = np.asarray(values, dtype=float)
     if values.size == 0:

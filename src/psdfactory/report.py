@@ -33,7 +33,7 @@ class ReportInputs:
     @classmethod
     def from_lists(cls, config: dict, metrics: list, scatters: list, histories: list, bench: list, manifests: list,
                    contact_sheets: list | None = None, compare: list | None = None,
-                   ceilings: list | None = None) -> "ReportInputs":
+                   ceilings: list | None = None) -> ReportInputs:
         """Per-architecture lists in the order of ``train.architectures``, contact sheets in the
         order of ``datasets`` (the order of the report rule's ``expand()``)."""
         archs, datasets = list(config["train"]["architectures"]), list(config["datasets"])
@@ -41,7 +41,7 @@ class ReportInputs:
         def keyed(what: str, files: list, keys: list[str]) -> dict[str, Path]:
             if len(files) != len(keys):
                 raise PsdError(f"{what}: {len(files)} files for {len(keys)} entries ({', '.join(keys)})")
-            return dict(zip(keys, map(Path, files)))
+            return dict(zip(keys, map(Path, files), strict=True))
 
         return cls(keyed("metrics", metrics, archs), keyed("scatters", scatters, archs),
                    keyed("histories", histories, archs), keyed("bench", bench, archs), [Path(m) for m in manifests],
@@ -99,7 +99,7 @@ def accuracy_table(metrics: dict[str, dict], dataset: str, ceiling: dict | None 
     vis = (ceiling or {}).get("visible") or {}
     rerenders = rerenders or {}
     head = ["model"] + [f"R² {n} (of ceiling)" for n in NAMES]
-    for ds, label in rerenders.items():
+    for label in rerenders.values():
         head += [f"R² {n} on {label} renders" for n in NAMES]
     head += [f"MAE {n}" for n in NAMES] + [f"rel. err. {n}" for n in NAMES]
     head += ["R² overall", "MSE overall", "MAE overall", "order violations"]
@@ -170,7 +170,8 @@ def speed_table(bench: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
                 if key == "fast":
                     continue
                 change = p.get("r2_change")
-                rows.append([arch, r["device"], str(r["input_size"]), p["name"] + (" ★" if key == r["fast_key"] else ""),
+                name = p["name"] + (" ★" if key == r["fast_key"] else "")
+                rows.append([arch, r["device"], str(r["input_size"]), name,
                              _fmt(p["batch1"]["images_per_s"], 1), _fmt(p["batched"]["images_per_s"], 1),
                              _fmt(p["batched"]["ms_per_image"], 2), f"{p['batched']['images_per_s'] / base:.2f}×",
                              "–" if change is None else f"{change:+.4f}", _fmt(r["params_m"], 1), _fmt(r["gflops"], 2)])
@@ -191,7 +192,8 @@ def _html_table(head, rows) -> str:
 
 def _img_tag(path: Path, alt: str) -> str:
     data = base64.b64encode(Path(path).read_bytes()).decode()
-    return f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{data}"><figcaption>{html.escape(alt)}</figcaption></figure>'
+    return (f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+            f"<figcaption>{html.escape(alt)}</figcaption></figure>")
 
 
 def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Path) -> None:
@@ -294,7 +296,8 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
     h += ["<h2>Accuracy</h2>", f"<p>{html.escape(ACCURACY_NOTE)}</p>"]
     for ds in datasets:
         h += [f"<h3>{html.escape(ds)}</h3>", _html_table(*acc[ds])]
-    h += ["<h2>Inference speed</h2>", f"<p>{html.escape(fast_path_rule(bench))}</p>", _html_table(speed_head, speed_rows)]
+    h += ["<h2>Inference speed</h2>", f"<p>{html.escape(fast_path_rule(bench))}</p>",
+          _html_table(speed_head, speed_rows)]
     h += [_img_tag(p, c) for p, c in plot_figs]
     h += ["<h2>Weights used</h2>", _html_table(["CNN model", "weights"], weights)]
     h += ["<h2>Configuration</h2>", f"<pre>{html.escape(cfg_yaml)}</pre>", "</body></html>"]

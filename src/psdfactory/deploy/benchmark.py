@@ -171,7 +171,8 @@ def benchmark_model(model: nn.Module, meta: dict, device: torch.device, results_
                     x = np.random.default_rng(0).standard_normal((b, 3, size, size)).astype(np.float32)
                     r = throughput(lambda ort=runners[key], x=x: ort(x), b, seconds, repeats)
                 res["batch1" if b == 1 else "batched"] = r
-                logger.info(f"  {path.name:<32} batch {b:>3}: {r['images_per_s']:7.1f} images/s, {r['ms_per_image']:7.2f} ms/image")
+                logger.info(f"  {path.name:<32} batch {b:>3}: {r['images_per_s']:7.1f} images/s, "
+                            f"{r['ms_per_image']:7.2f} ms/image")
             if rows and path.engine == "torch":
                 p, y = predict_rows(model.to(device), meta, results_root, rows, device, path.precision)
                 res["accuracy"] = regression_metrics(y, p)
@@ -208,7 +209,8 @@ def benchmark(model_path: Path, results_root: Path, dataset: str, batch: int, se
     result = {"arch": meta["arch"], "weights": meta["weights"], "cpu": caps.as_dict(), "results": []}
     for dev in devices:
         logger.info(f"{meta['arch']} on {dev} at {meta['input_size']} px:")
-        result["results"].append(benchmark_model(model, meta, dev, results_root, dataset, batch, seconds, repeats, caps))
+        result["results"].append(benchmark_model(model, meta, dev, results_root, dataset, batch, seconds, repeats,
+                                                 caps))
     fast = result["results"][-1]["paths"]
     result["r2_change"] = fast["fast"]["r2_change"]
     logger.info(f"R² overall: fp32 {fast['fp32']['accuracy']['overall']['r2']:.4f}, fast "

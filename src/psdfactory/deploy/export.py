@@ -39,7 +39,8 @@ def export(model_path: Path, out_dir: Path, int8_results: Path | None = None, da
 
     wrapped = OutputOnly(model).eval()
     out_dir.mkdir(parents=True, exist_ok=True)
-    report = {"arch": meta["arch"], "input_size": size, "input": "float32 Nx3xSxS, RGB/255 normalised with ImageNet mean/std",
+    report = {"arch": meta["arch"], "input_size": size,
+              "input": "float32 Nx3xSxS, RGB/255 normalised with ImageNet mean/std",
               "output": "float32 Nx3: d10, d50, d90 in mm (number-weighted)", "mm_per_px": meta["mm_per_px"]}
 
     ts_path = out_dir / "model.torchscript.pt"

@@ -64,8 +64,7 @@ def _cpuinfo() -> tuple[str, set[str]]:
 
 def onnxruntime_available() -> bool:
     try:
-        import onnxruntime  # noqa: F401
-        import onnxruntime.quantization  # noqa: F401
+        import onnxruntime.quantization  # noqa: F401 -- imported only to see that it loads (int8 needs this part)
     except ImportError:
         return False
     return True
@@ -78,7 +77,8 @@ def detect() -> Capabilities:
     model, flags = _cpuinfo()
     isa = str(torch.backends.cpu.get_cpu_capability()).upper()
     machine = platform.machine()
-    hw_bf16 = any(getattr(torch.cpu, c, lambda: False)() for c in ("_is_avx512_bf16_supported", "_is_amx_tile_supported"))
+    hw_bf16 = any(getattr(torch.cpu, c, lambda: False)()
+                  for c in ("_is_avx512_bf16_supported", "_is_amx_tile_supported"))
     if machine.lower() in ("aarch64", "arm64"):
         native_bf16 = "bf16" in flags
     else:

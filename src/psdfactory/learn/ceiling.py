@@ -80,17 +80,17 @@ def dataset_ceilings(scenes: list[dict], particles: dict[str, tuple[np.ndarray, 
     size_sigma); `particles`: scene_id → (true sizes, visible pixels)."""
     y = np.array([[s[t] for t in TARGETS] for s in scenes], float)
     out: dict = {"n_scenes": len(scenes), "targets": list(TARGETS), "folds": folds,
-                 "label_sd_mm": dict(zip(TARGETS, y.std(axis=0).round(4).tolist()))}
+                 "label_sd_mm": dict(zip(TARGETS, y.std(axis=0).round(4).tolist(), strict=True))}
     if len(scenes) < MIN_SCENES:
         out["note"] = f"{len(scenes)} scenes: too few for a cross-validated ceiling (needs {MIN_SCENES})"
         out["visible"] = out["sampling"] = None
         return out
     xv = np.stack([visible_features(*particles[s["scene_id"]], min_px=visible_min_px) for s in scenes])
-    out["visible"] = dict(zip(TARGETS, cross_validated_r2(xv, y, folds).tolist()))
+    out["visible"] = dict(zip(TARGETS, cross_validated_r2(xv, y, folds).tolist(), strict=True))
     mean, sigma = (np.array([s[k] for s in scenes], float) for k in ("size_mean", "size_sigma"))
     if np.ptp(mean) > 0 or np.ptp(sigma) > 0:
         xs = sampling_features(mean, sigma, bounds)
-        out["sampling"] = dict(zip(TARGETS, cross_validated_r2(xs, y, folds).tolist()))
+        out["sampling"] = dict(zip(TARGETS, cross_validated_r2(xs, y, folds).tolist(), strict=True))
     else:
         out["sampling"] = None  # one fixed distribution: the labels differ by sampling noise alone
     return out
@@ -109,7 +109,7 @@ def ceilings_from_manifests(scene_shards: list, particle_shards: list, bounds: t
     order = np.argsort(ids, kind="stable")
     uniq, start = np.unique(ids[order], return_index=True)
     groups = np.split(order, start[1:])
-    particles = {str(u): (size[g], vis[g]) for u, g in zip(uniq, groups)}
+    particles = {str(u): (size[g], vis[g]) for u, g in zip(uniq, groups, strict=True)}
     missing = [s["scene_id"] for s in scenes if s["scene_id"] not in particles]
     if missing:
         raise PsdError(f"the particle manifest has no rows for {len(missing)} scenes (e.g. {missing[0]}); "

@@ -75,5 +75,5 @@ class SceneImages(torch.utils.data.Dataset):
 def normalised_images(results_root: Path, rows: list[dict], size: int) -> tuple[torch.Tensor, np.ndarray]:
     """Scenes as one normalised float batch (N×3×S×S) and their targets in mm."""
     ds = SceneImages(results_root, rows, size, cache=False)
-    xs, ys = zip(*(ds[i] for i in range(len(ds))))
+    xs, ys = zip(*(ds[i] for i in range(len(ds))), strict=True)
     return normalise(torch.stack(xs)), torch.stack(ys).numpy()

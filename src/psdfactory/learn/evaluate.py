@@ -10,8 +10,8 @@ import numpy as np
 import torch
 
 from .. import PsdError
-from .data import SceneImages, manifest_rows
 from ..io import atomic_path, pyplot, save_figure, write_json
+from .data import SceneImages, manifest_rows
 from .metrics import NAMES, regression_metrics
 from .runtime import load_model, pick_device, pick_precision, predict_batches
 
@@ -49,10 +49,10 @@ def evaluate(model_path: Path, results_root: Path, datasets: list[str], out_dir:
         result["datasets"][ds] = m
         logger.info(f"{meta['arch']} on {ds} ({m['n']} scenes): R² overall {m['overall']['r2']:.4f}, "
             + ", ".join(f"{n} {m[n]['r2']:.3f}" for n in NAMES) + f"; MAE {m['overall']['mae']:.3f} mm")
-        for r, yy, pp in zip(rows, y, p):
+        for r, yy, pp in zip(rows, y, p, strict=True):
             preds_rows.append({"dataset": ds, "scene_id": r["scene_id"], "split": r["split"],
-                               **{f"true_{n}_mm": float(v) for n, v in zip(NAMES, yy)},
-                               **{f"pred_{n}_mm": float(v) for n, v in zip(NAMES, pp)}})
+                               **{f"true_{n}_mm": float(v) for n, v in zip(NAMES, yy, strict=True)},
+                               **{f"pred_{n}_mm": float(v) for n, v in zip(NAMES, pp, strict=True)}})
     out_dir.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_dir / "predictions.csv") as tmp, open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(preds_rows[0]))
@@ -67,7 +67,7 @@ def plot_scatter(rows: list[dict], arch: str, out: Path) -> None:
     plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(11, 3.8))
     datasets = sorted({r["dataset"] for r in rows})
-    for ax, n in zip(axes, NAMES):
+    for ax, n in zip(axes, NAMES, strict=True):
         for ds in datasets:
             t = np.array([r[f"true_{n}_mm"] for r in rows if r["dataset"] == ds])
             p = np.array([r[f"pred_{n}_mm"] for r in rows if r["dataset"] == ds])

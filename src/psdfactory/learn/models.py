@@ -37,7 +37,7 @@ class TargetStats:
     part_std: list[float]
 
     @classmethod
-    def from_targets(cls, y: torch.Tensor) -> "TargetStats":
+    def from_targets(cls, y: torch.Tensor) -> TargetStats:
         y = y.double()
         parts = torch.stack([y[:, 0], y[:, 1] - y[:, 0], y[:, 2] - y[:, 1]], dim=1)
 
@@ -83,7 +83,8 @@ def _softplus_inv(y: float) -> float:
 def input_size(arch: str, configured: dict | None = None) -> int:
     size = int((configured or {}).get(arch, DEFAULT_INPUT.get(arch, 224)))
     if size < MIN_INPUT.get(arch, 32):
-        raise PsdError(f"train.input_size.{arch} = {size} is below the {MIN_INPUT.get(arch, 32)} px that {arch} accepts")
+        raise PsdError(f"train.input_size.{arch} = {size} is below the {MIN_INPUT.get(arch, 32)} px "
+                       f"that {arch} accepts")
     return size
 
 
@@ -120,7 +121,8 @@ def inception_aux_fits(size: int) -> bool:
     return (x - 5) // 3 + 1 >= 5
 
 
-def build_model(arch: str, stats: TargetStats, pretrained: str = "none", size: int | None = None) -> tuple[nn.Module, str]:
+def build_model(arch: str, stats: TargetStats, pretrained: str = "none",
+                size: int | None = None) -> tuple[nn.Module, str]:
     """A torchvision model with the ordered regression head; returns (model, weights used).
 
     InceptionV3 keeps its auxiliary head (trained with its own loss term) when the input is

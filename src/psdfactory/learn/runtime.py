@@ -64,7 +64,7 @@ def faster_cpu_precision(model: nn.Module, size: int, batch: int, stats: TargetS
     saved = {k: v.clone() for k, v in model.state_dict().items()}  # BatchNorm statistics move in train mode
     model.train()
     for prec in ("bf16", "fp32"):
-        for k in range(2):
+        for _ in range(2):  # the first pass warms up
             t0 = time.perf_counter()
             with autocast(dev, prec):
                 out = model(x)
@@ -73,7 +73,8 @@ def faster_cpu_precision(model: nn.Module, size: int, batch: int, stats: TargetS
     model.zero_grad(set_to_none=True)
     model.load_state_dict(saved)
     pick = "bf16" if times["bf16"] < times["fp32"] else "fp32"
-    logger.info(f"precision auto: one training batch takes {times['bf16']:.2f} s in bf16, {times['fp32']:.2f} s in fp32 → {pick}")
+    logger.info(f"precision auto: one training batch takes {times['bf16']:.2f} s in bf16, "
+                f"{times['fp32']:.2f} s in fp32 → {pick}")
     return pick
 
 

@@ -24,8 +24,16 @@ from ..io import atomic_path
 from .augment import augment_d4, photometric, rescale
 from .data import SceneImages, manifest_rows, normalise
 from .models import TargetStats, build_model, count_parameters, inception_aux_fits, input_size
-from .runtime import (autocast, faster_cpu_precision, load_checkpoint, loss_fn, pick_device, pick_precision,
-                      predict_batches, save_model)
+from .runtime import (
+    autocast,
+    faster_cpu_precision,
+    load_checkpoint,
+    loss_fn,
+    pick_device,
+    pick_precision,
+    predict_batches,
+    save_model,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -52,7 +60,7 @@ class TrainParams:
     seed: int = 0
 
     @classmethod
-    def from_dict(cls, d: dict) -> "TrainParams":
+    def from_dict(cls, d: dict) -> TrainParams:
         unknown = set(d) - set(cls.__dataclass_fields__)
         if unknown:
             raise PsdError(f"unknown training settings: {sorted(unknown)}")
@@ -132,12 +140,15 @@ def train(params: TrainParams, results_root: Path, out_dir: Path) -> dict:
         logger.info(f"inception_v3 at {size} px: auxiliary head dropped (it needs ≥ 299 px)")
     model = model.to(device).to(memory_format=torch.channels_last)
     if params.precision == "auto" and precision == "bf16" and device.type == "cpu":
-        precision = faster_cpu_precision(model, size, min(params.batch_size, len(train_ds)), stats, params.aux_loss_weight)
+        precision = faster_cpu_precision(model, size, min(params.batch_size, len(train_ds)), stats,
+                                         params.aux_loss_weight)
     opt = torch.optim.Adam(model.parameters(), lr=params.lr, weight_decay=params.weight_decay)
-    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, mode="min", factor=params.lr_factor, patience=params.lr_patience)
+    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, mode="min", factor=params.lr_factor,
+                                                       patience=params.lr_patience)
     gen = torch.Generator().manual_seed(params.seed)
     loader_gen = torch.Generator().manual_seed(params.seed + 1)
-    train_loader = torch.utils.data.DataLoader(train_ds, batch_size=params.batch_size, shuffle=True, generator=loader_gen)
+    train_loader = torch.utils.data.DataLoader(train_ds, batch_size=params.batch_size, shuffle=True,
+                                               generator=loader_gen)
     val_loader = torch.utils.data.DataLoader(val_ds, batch_size=params.batch_size)
 
     ckpt_dir = out_dir / "checkpoints"
@@ -185,7 +196,8 @@ def train(params: TrainParams, results_root: Path, out_dir: Path) -> dict:
         t0 = time.perf_counter()
         with tqdm(total=len(train_ds), desc=f"{params.arch} epoch {epoch + 1}/{params.epochs}", unit="img",
                   mininterval=2.0, leave=True, disable=not logger.isEnabledFor(logging.INFO)) as bar:
-            train_loss = run_epoch(model, train_loader, stats, opt, device, precision, params.aux_loss_weight, gen, params, bar)
+            train_loss = run_epoch(model, train_loader, stats, opt, device, precision, params.aux_loss_weight, gen,
+                                   params, bar)
         pred, y = predict_batches(model, val_loader, device, precision)
         val_loss = float(nn.functional.mse_loss(stats.standardise(pred), stats.standardise(y)))
         val_mae = float((pred - y).abs().mean())
@@ -202,8 +214,8 @@ def train(params: TrainParams, results_root: Path, out_dir: Path) -> dict:
             save_model(ckpt_dir / "best.pt", model, {**meta, "epoch": epoch + 1, "val_loss": val_loss})
         else:
             stale += 1
-        logger.info(f"epoch {epoch + 1}: train loss {train_loss:.4f}, val loss {val_loss:.4f}, val MAE {val_mae:.3f} mm, "
-            f"lr {lr:.2e}, {row['seconds']:.0f} s{' (best)' if improved else ''}")
+        logger.info(f"epoch {epoch + 1}: train loss {train_loss:.4f}, val loss {val_loss:.4f}, "
+                    f"val MAE {val_mae:.3f} mm, lr {lr:.2e}, {row['seconds']:.0f} s{' (best)' if improved else ''}")
         with atomic_path(last_path) as tmp:
             torch.save({
                 "fingerprint": fp, "epoch": epoch, "model": model.state_dict(), "optimizer": opt.state_dict(),
@@ -219,8 +231,8 @@ def train(params: TrainParams, results_root: Path, out_dir: Path) -> dict:
     if best_epoch < 0:
         raise PsdError("no epoch was trained (train.epochs must be ≥ 1)")
     best_ckpt = load_checkpoint(ckpt_dir / "best.pt", "training checkpoint")
-    summary = {**best_ckpt["meta"], "best_epoch": best_epoch, "epochs_run": len(history.rows), "stop_reason": stop_reason,
-               "precision": precision, "device": str(device)}
+    summary = {**best_ckpt["meta"], "best_epoch": best_epoch, "epochs_run": len(history.rows),
+               "stop_reason": stop_reason, "precision": precision, "device": str(device)}
     with atomic_path(out_dir / "model.pt") as tmp:
         torch.save({"meta": summary, "state_dict": best_ckpt["state_dict"]}, tmp)
     history.write_csv(out_dir / "history.csv")

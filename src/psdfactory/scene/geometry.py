@@ -30,7 +30,7 @@ class Geometry:
     dims_mm: np.ndarray
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "Geometry":
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Geometry:
         try:
             return cls(**{k: arrays[k] for k in cls.__dataclass_fields__})
         except KeyError as e:

@@ -25,7 +25,7 @@ class LabelParams:
     psd_bins: int = 32  # points of the cumulative curves, log-spaced over the size bounds
 
     @classmethod
-    def from_dict(cls, d: dict) -> "LabelParams":
+    def from_dict(cls, d: dict) -> LabelParams:
         return cls(**d)
 
 
@@ -37,7 +37,8 @@ def visible_pixels(mask: np.ndarray, n_particles: int) -> np.ndarray:
 
 
 def scene_labels(
-    sizes: np.ndarray, volumes: np.ndarray, visible_px: np.ndarray, image_px: int, bounds: tuple[float, float], p: LabelParams
+    sizes: np.ndarray, volumes: np.ndarray, visible_px: np.ndarray, image_px: int, bounds: tuple[float, float],
+    p: LabelParams,
 ) -> dict:
     d_n = weighted_percentiles(sizes, None)
     d_v = weighted_percentiles(sizes, volumes)

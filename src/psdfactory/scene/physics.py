@@ -54,7 +54,7 @@ class PhysicsParams:
     quality: QualityBounds = field(default_factory=QualityBounds)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "PhysicsParams":
+    def from_dict(cls, d: dict) -> PhysicsParams:
         d = dict(d)
         q = QualityBounds(**d.pop("quality", {}))
         return cls(quality=q, **d)
@@ -131,7 +131,8 @@ def particle_masses(volume_mm3: np.ndarray, density_g_cm3: float, max_ratio: flo
 
 
 def quality_figures(
-    geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, settled: np.ndarray, min_contact_mm: float, table_size: float, tol: float
+    geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, settled: np.ndarray, min_contact_mm: float,
+    table_size: float, tol: float,
 ) -> dict:
     rots = quat_to_matrix(quats)
     half = table_size / 2
@@ -170,7 +171,8 @@ def quality_problems(q: dict, b: QualityBounds) -> list[str]:
     return problems
 
 
-def _run_once(geometry: Geometry, xy: np.ndarray, table_size: float, p: PhysicsParams, rng: np.random.Generator) -> tuple:
+def _run_once(geometry: Geometry, xy: np.ndarray, table_size: float, p: PhysicsParams,
+              rng: np.random.Generator) -> tuple:
     import pybullet as pb
 
     n = len(geometry)

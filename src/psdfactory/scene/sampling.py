@@ -37,7 +37,7 @@ class SampleParams:
     placement_cell_mm: float = 2.0
 
     @classmethod
-    def from_dict(cls, d: dict) -> "SampleParams":
+    def from_dict(cls, d: dict) -> SampleParams:
         size = d["size"]
         placement = d.get("placement", {})
         return cls(
@@ -97,7 +97,7 @@ def drop_positions(
     n_cells = max(1, int(np.ceil(table_size / cell_mm)))
     height = np.zeros((n_cells, n_cells))
     out = np.empty((len(footprint_r), 2))
-    for i, (r, vol) in enumerate(zip(footprint_r, volumes)):
+    for i, (r, vol) in enumerate(zip(footprint_r, volumes, strict=True)):
         lim = half - r
         if lim <= 0:
             raise PsdError(f"a particle {2 * r:.1f} mm across does not fit on a {table_size} mm table")
@@ -144,7 +144,7 @@ def sample_scene(p: SampleParams) -> tuple[dict, dict[str, np.ndarray]]:
         "samplesize": n,
         "particles": [
             {"size": round(float(s), 4), "x": round(float(x), 3), "y": round(float(y), 3)}
-            for s, (x, y) in zip(sizes, xy)
+            for s, (x, y) in zip(sizes, xy, strict=True)
         ],
         # provenance
         "scene_id": scene_id(p.dataset, p.index),

@@ -13,10 +13,10 @@ Families:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -37,7 +37,7 @@ class ShapeParams:
     mesh_files: tuple[str, ...] = ()
 
     @classmethod
-    def for_family(cls, family: str, overrides: dict | None = None) -> "ShapeParams":
+    def for_family(cls, family: str, overrides: dict | None = None) -> ShapeParams:
         defaults = {
             "crushed_rock": {},
             "granule": {"aspect_b": (0.9, 1.0), "aspect_c": (0.85, 0.95), "roughness": 0.03},

@@ -23,7 +23,7 @@ def contact_sheet(results_root: Path, dataset: str, out: Path, n: int = 6) -> Pa
     plt = pyplot()
     scenes = read_scenes(results_root, dataset).sort_by("index").slice(0, n).to_pylist()
     fig, axes = plt.subplots(len(scenes), 2, figsize=(6.4, 3.2 * len(scenes)), squeeze=False)
-    for row, sc in zip(axes, scenes):
+    for row, sc in zip(axes, scenes, strict=True):
         img = read_png(Path(results_root) / sc["image_path"])
         mask = read_png(Path(results_root) / sc["mask_path"])
         row[0].imshow(img)
@@ -64,20 +64,21 @@ def compare_backends(results_root: Path, dataset: str, n: int, render_params: di
     import time
 
     from .. import PsdError
-    from .render.cycles import blender_python
     from ..io import write_json
+    from .render.cycles import blender_python
     from .stages import run_render
 
     try:
         blender_python()
     except PsdError as e:
-        raise PsdError(f"{e}\n(or set show.compare_backends: 0 to leave the backend comparison out of the report)") from None
+        hint = "(or set show.compare_backends: 0 to leave the backend comparison out of the report)"
+        raise PsdError(f"{e}\n{hint}") from None
     plt = pyplot()
     scenes = read_scenes(results_root, dataset).sort_by("index").slice(0, n).to_pylist()
     backends = ("tiny", "cycles")
     rows = []
     fig, axes = plt.subplots(len(scenes), 3, figsize=(9.6, 3.3 * len(scenes)), squeeze=False)
-    for ax_row, sc in zip(axes, scenes):
+    for ax_row, sc in zip(axes, scenes, strict=True):
         src = (Path(results_root) / sc["image_path"]).parent
         out = {}
         for b in backends:
@@ -87,16 +88,18 @@ def compare_backends(results_root: Path, dataset: str, n: int, render_params: di
                 shutil.copyfile(src / f, d / f)
             t0 = time.perf_counter()
             run_render({**render_params, "backend": b}, d)
-            out[b] = {"seconds": time.perf_counter() - t0, "image": read_png(d / "image.png"), "mask": read_png(d / "mask.png")}
+            out[b] = {"seconds": time.perf_counter() - t0, "image": read_png(d / "image.png"),
+                      "mask": read_png(d / "mask.png")}
         agree, agree_inner = mask_agreement(out["tiny"]["mask"], out["cycles"]["mask"])
         rows.append({"scene_id": sc["scene_id"], "n_particles": sc["n_particles"],
                      **{f"seconds_{b}": round(out[b]["seconds"], 3) for b in backends},
                      "mask_agreement": agree, "mask_agreement_off_edges": agree_inner})
-        for ax, b in zip(ax_row, backends):
+        for ax, b in zip(ax_row, backends, strict=False):  # (the third axis shows where the masks differ)
             ax.imshow(out[b]["image"])
             ax.set_title(f"{sc['scene_id']}: {b} ({out[b]['seconds']:.1f} s)", fontsize=8)
         diff = out["tiny"]["mask"] != out["cycles"]["mask"]
-        ax_row[2].imshow(np.where(diff[..., None], [255, 40, 40], colorize_mask(out["tiny"]["mask"]) // 3).astype(np.uint8))
+        faint = colorize_mask(out["tiny"]["mask"]) // 3
+        ax_row[2].imshow(np.where(diff[..., None], [255, 40, 40], faint).astype(np.uint8))
         ax_row[2].set_title(f"masks differ (red): {100 * (1 - agree):.1f} % of pixels,\n"
                             f"{100 * (1 - agree_inner):.2f} % away from edges", fontsize=8)
         for ax in ax_row:

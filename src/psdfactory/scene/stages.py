@@ -18,16 +18,26 @@ import json
 import logging
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from .. import PsdError
-from ..io import atomic_path, read_json, read_npz, read_parquet, read_png, write_json, write_npz, write_parquet, write_png
-from .geometry import Geometry
+from ..io import (
+    atomic_path,
+    read_json,
+    read_npz,
+    read_parquet,
+    read_png,
+    write_json,
+    write_npz,
+    write_parquet,
+    write_png,
+)
 from ..seeding import scene_id, scene_index
+from .geometry import Geometry
 
 logger = logging.getLogger(__name__)
 POSE_COLUMNS = ("particle_id", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "settled")
@@ -42,7 +52,10 @@ def load_poses(scene_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     missing = [c for c in POSE_COLUMNS if c not in t.column_names]
     if missing:
         raise PsdError(f"{scene_dir / 'poses.parquet'} lacks columns {missing}; rerun simulate")
-    col = lambda c: t.column(c).to_numpy()  # noqa: E731
+
+    def col(name: str) -> np.ndarray:
+        return t.column(name).to_numpy()
+
     pos = np.stack([col("x_mm"), col("y_mm"), col("z_mm")], axis=1)
     quat = np.stack([col("qx"), col("qy"), col("qz"), col("qw")], axis=1)
     return pos, quat, col("settled")
@@ -172,7 +185,8 @@ def run_label(params: dict, scene_dir: Path) -> dict:
         raise PsdError(f"{scene_dir / 'mask.png'} is not a {rend['resolution']}² 16-bit mask; rerun render")
     n = len(geometry)
     vis = visible_pixels(mask, n)
-    labels = scene_labels(geometry.size_mm, geometry.volume_mm3, vis, mask.size, tuple(spec["size_bounds"]), LabelParams.from_dict(params))
+    labels = scene_labels(geometry.size_mm, geometry.volume_mm3, vis, mask.size, tuple(spec["size_bounds"]),
+                          LabelParams.from_dict(params))
     record = {
         "scene_id": spec["scene_id"],
         "dataset": spec["dataset"],
@@ -228,8 +242,10 @@ STAGES = {
     for s in (
         Stage("sample", run_sample, (), ("spec.json", "geometry.npz")),
         Stage("simulate", run_simulate, ("spec.json", "geometry.npz"), ("poses.parquet", "simulate.json")),
-        Stage("render", run_render, ("spec.json", "geometry.npz", "poses.parquet"), ("image.png", "mask.png", "render.json")),
-        Stage("label", run_label, ("spec.json", "geometry.npz", "poses.parquet", "simulate.json", "mask.png", "render.json"),
+        Stage("render", run_render, ("spec.json", "geometry.npz", "poses.parquet"),
+              ("image.png", "mask.png", "render.json")),
+        Stage("label", run_label,
+              ("spec.json", "geometry.npz", "poses.parquet", "simulate.json", "mask.png", "render.json"),
               ("labels.json", "particles.parquet")),
     )
 }
@@ -339,7 +355,8 @@ def run_scenes(stage: str, params: dict, scene_dirs: list[Path], skip_up_to_date
                 logger.error(f"{stage}: FAILED {d}: {err}")
             if len(work) > 1:
                 el = time.perf_counter() - t0
-                logger.info(f"{stage}: {k}/{len(work)} scenes, {k / el:.2f} scenes/s, ETA {(len(work) - k) * el / k:.0f} s")
+                logger.info(f"{stage}: {k}/{len(work)} scenes, {k / el:.2f} scenes/s, "
+                            f"ETA {(len(work) - k) * el / k:.0f} s")
     except Exception as e:  # a worker killed (out of memory, a crash in a native library)
         from concurrent.futures.process import BrokenProcessPool
 

@@ -11,8 +11,8 @@ runs (``python -P blender_job.py JOB_DIR``), shipped as package data beside ``cy
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict
-from typing import Callable
 
 import numpy as np
 
@@ -27,7 +27,8 @@ MAX_PARTICLES_16BIT = 65534
 BACKENDS: dict[str, Callable] = {"tiny": render_tiny, "cycles": render_cycles}
 
 
-def render_scene(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams, entropy: list[int]):
+def render_scene(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams,
+                 entropy: list[int]):
     """→ (image uint8 HxWx3, mask uint16 HxW, metadata dict)."""
     if p.backend not in BACKENDS:
         raise PsdError(f"unknown render backend {p.backend!r}; available: {', '.join(BACKENDS)}")

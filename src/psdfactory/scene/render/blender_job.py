@@ -99,7 +99,8 @@ def table_material(rgb, texture: float, grain_mm: float):
     noise.inputs["Scale"].default_value = 1.0 / (grain_mm * MM)
     noise.inputs["Detail"].default_value = 8.0
     ramp = nt.nodes.new("ShaderNodeValToRGB")
-    lo, hi = srgb_to_linear(np.clip(np.asarray(rgb) * (1 - 2 * texture), 0, 1)), srgb_to_linear(np.clip(np.asarray(rgb) * (1 + 2 * texture), 0, 1))
+    lo = srgb_to_linear(np.clip(np.asarray(rgb) * (1 - 2 * texture), 0, 1))
+    hi = srgb_to_linear(np.clip(np.asarray(rgb) * (1 + 2 * texture), 0, 1))
     ramp.color_ramp.elements[0].color = (*lo, 1)
     ramp.color_ramp.elements[1].color = (*hi, 1)
     nt.links.new(noise.outputs["Fac"], ramp.inputs["Fac"])
@@ -168,7 +169,8 @@ def build_scene(job: dict, arrays) -> str:
 
     # table: a textured plane larger than the view, top at z = 0
     T = job["table_size_mm"] * 1.5 * MM / 2
-    table_mesh = add_mesh("table", np.array([[-T, -T, 0], [T, -T, 0], [T, T, 0], [-T, T, 0]]), np.array([[0, 1, 2], [0, 2, 3]]), False)
+    corners = np.array([[-T, -T, 0], [T, -T, 0], [T, T, 0], [-T, T, 0]])
+    table_mesh = add_mesh("table", corners, np.array([[0, 1, 2], [0, 2, 3]]), False)
     table = bpy.data.objects.new("table", table_mesh)
     table.pass_index = 0
     table_mesh.materials.append(table_material(job["table_rgb"], job["table_texture"], job["grain_mm"]))

@@ -47,7 +47,7 @@ class CyclesParams:
     timeout_s: float = 3600.0
 
     @classmethod
-    def from_dict(cls, d: dict | None) -> "CyclesParams":
+    def from_dict(cls, d: dict | None) -> CyclesParams:
         kw = {}
         for k, v in (d or {}).items():
             if k not in cls.__dataclass_fields__:
@@ -72,7 +72,10 @@ def blender_python() -> Path:
 
 def draw_cycles_look(rng: np.random.Generator, c: CyclesParams, n: int) -> dict:
     """What Cycles adds to the shared look, drawn after it so the shared part stays the same."""
-    u = lambda r: float(rng.uniform(*r))  # noqa: E731
+
+    def u(r: Range) -> float:
+        return float(rng.uniform(*r))
+
     return {
         "roughness": rng.uniform(*c.roughness, size=n),
         "sun_strength": u(c.sun_strength),
@@ -125,7 +128,8 @@ def render_cycles(spec: dict, geometry, pos_mm: np.ndarray, quats: np.ndarray, p
             rgb=look.particle_rgb, roughness=extra["roughness"],
         )
         try:
-            r = subprocess.run([str(py), "-P", str(SCRIPT), str(d)], capture_output=True, text=True, timeout=c.timeout_s)
+            r = subprocess.run([str(py), "-P", str(SCRIPT), str(d)], capture_output=True, text=True,
+                               timeout=c.timeout_s)
         except subprocess.TimeoutExpired:
             raise PsdError(f"Blender did not finish within render.cycles.timeout_s = {c.timeout_s} s") from None
         if r.returncode != 0 or not (d / "result.json").is_file():

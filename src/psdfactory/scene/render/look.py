@@ -47,7 +47,7 @@ class RenderParams:
     cycles: CyclesParams = field(default_factory=CyclesParams)  # the Cycles backend's settings
 
     @classmethod
-    def from_dict(cls, d: dict) -> "RenderParams":
+    def from_dict(cls, d: dict) -> RenderParams:
         kw = {}
         for k, v in d.items():
             if k not in cls.__dataclass_fields__:
@@ -84,7 +84,10 @@ class Look:
 
 
 def draw_look(rng: np.random.Generator, p: RenderParams, n: int) -> Look:
-    u = lambda r: float(rng.uniform(*r))  # noqa: E731
+
+    def u(r: Range) -> float:
+        return float(rng.uniform(*r))
+
     az, el = u(p.light_azimuth_deg), u(p.light_elevation_deg)
     a, e = math.radians(az), math.radians(el)
     light_dir = [math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)]
@@ -111,7 +114,8 @@ def apply_sensor(img: np.ndarray, look: Look, p: RenderParams, rng: np.random.Ge
     r = p.resolution
     yy, xx = np.mgrid[0:r, 0:r]
     rad2 = ((xx - r / 2) ** 2 + (yy - r / 2) ** 2) / (r / 2) ** 2 / 2
-    img = img * look.exposure * np.asarray(look.white_balance, dtype=np.float32) * (1 - look.vignetting * rad2)[..., None]
+    wb = np.asarray(look.white_balance, dtype=np.float32)
+    img = img * look.exposure * wb * (1 - look.vignetting * rad2)[..., None]
     if look.blur_px > 0.05:
         img = ndimage.gaussian_filter(img, (look.blur_px, look.blur_px, 0))
     img = np.clip(img, 0, 1)

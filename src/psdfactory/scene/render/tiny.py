@@ -104,7 +104,8 @@ def tiny_raw(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarr
                 physicsClientId=cid,
             )
             body = pb.createMultiBody(
-                0, -1, vs, basePosition=(pos_mm[i] * CM).tolist(), baseOrientation=quats[i].tolist(), physicsClientId=cid
+                0, -1, vs, basePosition=(pos_mm[i] * CM).tolist(), baseOrientation=quats[i].tolist(),
+                physicsClientId=cid,
             )
             body_to_label[body] = i + 1
 
