@@ -39,7 +39,9 @@ test: $(STAMP) $(BLENDER_STAMP)  ## the whole test suite, system-level and Cycle
 test-fast: $(STAMP)  ## unit tests only
 	$(BIN)/python -m pytest -m "not slow and not workflow"
 
-lint: $(STAMP)
+lint: $(STAMP)  ## ruff (pyproject.toml's rule set), snakefmt --check on the workflow, snakemake --lint
+	$(BIN)/ruff check src tests bench
+	$(BIN)/snakefmt --check Snakefile rules
 	$(BIN)/snakemake --lint
 
 report: $(STAMP)
