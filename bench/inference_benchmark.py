@@ -22,17 +22,17 @@ from pathlib import Path
 import torch
 
 from psdfactory.cli import configure_logging
+from psdfactory.config import default_input_size
 from psdfactory.deploy.benchmark import benchmark, benchmark_model
 from psdfactory.learn.capability import detect
 from psdfactory.learn.models import TargetStats, build_model
 
 PAPER_CPU_FPS = {"resnet50": 14.66, "inception_v3": 12.00, "efficientnet_b0": 21.51}  # Ryzen 7 5800H, 8 cores
-SIZES = {"resnet50": 224, "inception_v3": 299, "efficientnet_b0": 224}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--archs", nargs="+", default=list(SIZES))
+    ap.add_argument("--archs", nargs="+", default=list(PAPER_CPU_FPS))
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--seconds", type=float, default=2.0)
     ap.add_argument("--repeats", type=int, default=5)
@@ -47,7 +47,7 @@ def main() -> None:
     print(f"CPU: {detect().summary()}")
     print(f"CPU threads: {torch.get_num_threads()}; batch {a.batch}; medians of {a.repeats} runs of ~{a.seconds} s")
     for arch in a.archs:
-        size = SIZES.get(arch, 224)
+        size = default_input_size(arch)
         model, _ = build_model(arch, stats, "none", size=size)
         print(f"{arch} at {size} px:")
         r = benchmark_model(model.eval(), {"input_size": size}, dev, None, None, a.batch, a.seconds, a.repeats)

@@ -37,6 +37,7 @@ def main() -> None:
     from psdfactory.learn.ceiling import ceilings_from_manifests
     from psdfactory.learn.evaluate import evaluate
     from psdfactory.learn.train import TrainParams, train
+    from psdfactory.psd import NAMES
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--results", required=True)
@@ -77,7 +78,7 @@ def main() -> None:
         minutes = (time.perf_counter() - t0) / 60
         res = evaluate(work / "model.pt", root, evals, work / "eval", precision="fp32")
         out["steps"][step] = {"overrides": STEPS[step], "train_minutes": minutes,
-                              "r2": {d: {n: res["datasets"][d][n]["r2"] for n in ("d10", "d50", "d90")} for d in evals}}
+                              "r2": {d: {n: res["datasets"][d][n]["r2"] for n in NAMES} for d in evals}}
         print(f"== {step}: trained in {minutes:.1f} min")
         if a.out:
             Path(a.out).parent.mkdir(parents=True, exist_ok=True)
@@ -92,7 +93,7 @@ def main() -> None:
             c = ceilings.get(d) or {}
             cells.append(" / ".join(f"{r['r2'][d][n]:.2f}" + (f" ({100 * r['r2'][d][n] / c[n + '_mm']:.0f} %)"
                                                                 if c.get(n + "_mm", 0) > 0 else "")
-                                    for n in ("d10", "d50", "d90")))
+                                    for n in NAMES))
         print(f"| {step} | " + " | ".join(cells) + f" | {r['train_minutes']:.1f} |")
     print(f"(training dataset: {ds})")
 

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from psdfactory import PsdError
-from psdfactory.learn.ceiling import TARGETS, cross_validated_r2, dataset_ceilings, sampling_features, visible_features
-from psdfactory.psd import weighted_percentiles
+from psdfactory.learn.ceiling import cross_validated_r2, dataset_ceilings, sampling_features, visible_features
+from psdfactory.psd import TARGETS, weighted_percentiles
 
 
 def test_visible_features_use_only_the_visible_particles():

@@ -120,15 +120,16 @@ def cmd_ceiling(a: argparse.Namespace) -> None:
 
 def cmd_predict(a: argparse.Namespace) -> int:
     from .deploy.predict import predict_files, write_predictions
+    from .psd import TARGETS
 
     rows = predict_files(Path(a.model), a.images, a.mm_per_px, device=a.device)
     # the table is the command's output (stdout); its notes are log records (stderr)
-    print(f"{'image':<50} {'d10_mm':>8} {'d50_mm':>8} {'d90_mm':>8}")
+    print(f"{'image':<50} " + " ".join(f"{t:>8}" for t in TARGETS))
     for r in rows:
         if r["error"]:
             print(f"{r['image']:<50} error: {r['error']}")
         else:
-            print(f"{r['image']:<50} {r['d10_mm']:>8.3f} {r['d50_mm']:>8.3f} {r['d90_mm']:>8.3f}")
+            print(f"{r['image']:<50} " + " ".join(f"{r[t]:>8.3f}" for t in TARGETS))
     if a.out:
         write_predictions(rows, Path(a.out))
         logger.info(f"wrote {a.out}")

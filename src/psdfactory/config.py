@@ -14,7 +14,18 @@ from pathlib import Path
 from . import PsdError
 
 SCHEMA = Path(__file__).with_name("config.schema.yaml")  # package data; the workflow validates with it too
-DEFAULT_INPUT_SIZE = {"inception_v3": 299}  # network input px where not 224 (the design size)
+
+# What a scene's files can hold: checked here when a config is read, and where the files are made.
+MAX_PARTICLES_16BIT = 65534  # particles that a 16-bit mask.png holds (0 = table, particle k is k + 1)
+MAX_PARTICLES_CYCLES = 32766  # Blender's object index (pass_index) is a signed 16-bit value, at most 32767
+
+DESIGN_INPUT_SIZE = 224  # network input px of the torchvision models
+DEFAULT_INPUT_SIZE = {"inception_v3": 299}  # where the design size differs
+
+
+def default_input_size(arch: str) -> int:
+    """The network input px of an architecture where train.input_size does not set it."""
+    return DEFAULT_INPUT_SIZE.get(arch, DESIGN_INPUT_SIZE)
 
 
 def validate(config: dict) -> dict:
@@ -161,8 +172,8 @@ def semantic_problems(config: dict) -> list[str]:
     for name, ds in config["datasets"].items():
         key = f"datasets.{name}"
         _ordered(f"{key}.count", ds["count"], problems)
-        if ds["count"][1] > 65534:
-            problems.append(f"{key}.count: at most 65534 particles fit a 16-bit mask")
+        if ds["count"][1] > MAX_PARTICLES_16BIT:
+            problems.append(f"{key}.count: at most {MAX_PARTICLES_16BIT} particles fit a 16-bit mask")
         size = ds["size"]
         _ordered(f"{key}.size.mean", size["mean"], problems)
         _ordered(f"{key}.size.sigma", size["sigma"], problems)
@@ -201,9 +212,9 @@ def semantic_problems(config: dict) -> list[str]:
             for k in ("roughness", "sun_strength", "sun_angle_deg", "sky_strength"):
                 _ordered(f"{key}.cycles.{k}", r["cycles"][k], problems)
     for name, ds in config["datasets"].items():
-        if dataset_render(config, name)["backend"] == "cycles" and ds["count"][1] > 32766:
-            problems.append(f"datasets.{name}.count: the cycles backend takes at most 32766 particles "
-                            "(Blender's object index tops out at 32767)")
+        if dataset_render(config, name)["backend"] == "cycles" and ds["count"][1] > MAX_PARTICLES_CYCLES:
+            problems.append(f"datasets.{name}.count: the cycles backend takes at most {MAX_PARTICLES_CYCLES} "
+                            f"particles (Blender's object index tops out at {MAX_PARTICLES_CYCLES + 1})")
     t = config["train"]
     _ordered("train.scale_augment", t["scale_augment"], problems)
     if t["dataset"] not in config["datasets"]:
@@ -319,7 +330,7 @@ def train_params(config: dict, arch: str) -> dict:
             "early_stopping_patience", "precision", "device", "aux_loss_weight", "augment", "scale_augment",
             "photometric")
     out = {k: t[k] for k in keys}
-    size = t["input_size"].get(arch, DEFAULT_INPUT_SIZE.get(arch, 224))
+    size = t["input_size"].get(arch, default_input_size(arch))
     out.update(arch=arch, seed=config["seed"], input_size=int(size))
     return out
 

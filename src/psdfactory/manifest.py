@@ -15,6 +15,7 @@ import pyarrow as pa
 
 from . import PsdError
 from .io import read_json, read_parquet, write_parquet
+from .psd import TARGETS, VOLUME_TARGETS
 from .seeding import assign_split
 
 SCENE_SCHEMA = pa.schema(
@@ -30,12 +31,7 @@ SCENE_SCHEMA = pa.schema(
         ("n_particles", pa.int32()),
         ("n_visible", pa.int32()),
         ("covered_fraction", pa.float64()),
-        ("d10_mm", pa.float64()),
-        ("d50_mm", pa.float64()),
-        ("d90_mm", pa.float64()),
-        ("d10_v_mm", pa.float64()),
-        ("d50_v_mm", pa.float64()),
-        ("d90_v_mm", pa.float64()),
+        *((t, pa.float64()) for t in TARGETS + VOLUME_TARGETS),
         ("shape_type", pa.string()),
         ("size_mean", pa.float64()),
         ("size_sigma", pa.float64()),

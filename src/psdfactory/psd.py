@@ -13,6 +13,9 @@ import numpy as np
 from . import PsdError
 
 PERCENTILES = (10.0, 50.0, 90.0)
+NAMES = tuple(f"d{q:g}" for q in PERCENTILES)  # "d10", "d50", "d90": the per-target keys of metrics and reports
+TARGETS = tuple(f"{n}_mm" for n in NAMES)  # the number-weighted labels (the paper's): what the models predict
+VOLUME_TARGETS = tuple(f"{n}_v_mm" for n in NAMES)  # the volume-weighted labels
 
 
 def weighted_percentiles(values: np.ndarray, weights: np.ndarray | None,

@@ -13,8 +13,8 @@ import numpy as np
 
 from . import PsdError, __version__
 from .io import atomic_path, pyplot, read_json, save_figure
-from .learn.metrics import NAMES
 from .manifest import read_shards
+from .psd import NAMES
 
 
 @dataclass(frozen=True)

@@ -18,9 +18,8 @@ from __future__ import annotations
 import numpy as np
 
 from .. import PsdError
-from ..psd import weighted_percentiles
+from ..psd import PERCENTILES, TARGETS, weighted_percentiles
 
-TARGETS = ("d10_mm", "d50_mm", "d90_mm")
 MIN_SCENES = 6  # fewer scenes than this give no meaningful cross-validated figure
 
 
@@ -39,7 +38,7 @@ def sampling_features(mean: np.ndarray, sigma: np.ndarray, bounds: tuple[float, 
 
     mean, sigma = np.asarray(mean, float), np.asarray(sigma, float)
     a, b = (bounds[0] - mean) / sigma, (bounds[1] - mean) / sigma
-    pop = np.stack([truncnorm.ppf(q, a, b, loc=mean, scale=sigma) for q in (0.1, 0.5, 0.9)], axis=1)
+    pop = np.stack([truncnorm.ppf(q / 100, a, b, loc=mean, scale=sigma) for q in PERCENTILES], axis=1)
     return np.column_stack([pop, mean, sigma])
 
 

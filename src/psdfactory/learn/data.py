@@ -11,7 +11,7 @@ from torch.nn import functional as F
 from .. import PsdError
 from ..io import read_png
 from ..manifest import read_scenes
-from .models import TARGETS
+from ..psd import TARGETS
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -25,7 +25,7 @@ def manifest_rows(results_root: Path, dataset: str, splits: tuple[str, ...] | No
 
 
 def targets(rows: list[dict]) -> torch.Tensor:
-    return torch.tensor([[r[t] for t in TARGETS] for r in rows], dtype=torch.float32).reshape(-1, 3)
+    return torch.tensor([[r[t] for t in TARGETS] for r in rows], dtype=torch.float32).reshape(-1, len(TARGETS))
 
 
 def to_input(image: np.ndarray, size: int | None) -> torch.Tensor:

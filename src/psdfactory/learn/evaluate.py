@@ -11,8 +11,9 @@ import torch
 
 from .. import PsdError
 from ..io import atomic_path, pyplot, save_figure, write_json
+from ..psd import NAMES
 from .data import SceneImages, manifest_rows
-from .metrics import NAMES, regression_metrics
+from .metrics import regression_metrics
 from .runtime import load_model, pick_device, pick_precision, predict_batches
 
 logger = logging.getLogger(__name__)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-NAMES = ("d10", "d50", "d90")
+from ..psd import NAMES
 
 
 def r2(y: np.ndarray, p: np.ndarray) -> float:

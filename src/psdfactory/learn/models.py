@@ -16,10 +16,9 @@ import torch
 from torch import nn
 
 from .. import PsdError
-from ..config import DEFAULT_INPUT_SIZE as DEFAULT_INPUT
+from ..config import default_input_size
 
 logger = logging.getLogger(__name__)
-TARGETS = ("d10_mm", "d50_mm", "d90_mm")
 MIN_INPUT = {"inception_v3": 75}
 
 
@@ -81,7 +80,7 @@ def _softplus_inv(y: float) -> float:
 
 
 def input_size(arch: str, configured: dict | None = None) -> int:
-    size = int((configured or {}).get(arch, DEFAULT_INPUT.get(arch, 224)))
+    size = int((configured or {}).get(arch, default_input_size(arch)))
     if size < MIN_INPUT.get(arch, 32):
         raise PsdError(f"train.input_size.{arch} = {size} is below the {MIN_INPUT.get(arch, 32)} px "
                        f"that {arch} accepts")

@@ -21,6 +21,7 @@ from torch import nn
 
 from .. import PsdError, __version__
 from ..io import atomic_path
+from ..psd import TARGETS
 from .augment import augment_d4, photometric, rescale
 from .data import SceneImages, manifest_rows, normalise
 from .models import TargetStats, build_model, count_parameters, inception_aux_fits, input_size
@@ -69,7 +70,7 @@ class TrainParams:
 
 def fingerprint(params: TrainParams, rows: list[dict]) -> str:
     """What a resumable checkpoint must match: the settings and the exact training scenes."""
-    ids = [(r["scene_id"], r["split"], r["d10_mm"], r["d50_mm"], r["d90_mm"]) for r in rows]
+    ids = [(r["scene_id"], r["split"], *(r[t] for t in TARGETS)) for r in rows]
     blob = json.dumps({"params": asdict(params), "scenes": ids}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -182,7 +183,7 @@ def train(params: TrainParams, results_root: Path, out_dir: Path) -> dict:
         "arch": params.arch,
         "input_size": size,
         "target_stats": asdict(stats),
-        "targets": ["d10_mm", "d50_mm", "d90_mm"],
+        "targets": list(TARGETS),
         "weighting": "number",
         "mm_per_px": float(np.median([r["mm_per_px"] for r in train_rows])),
         "image_resolution": int(np.median([r["resolution"] for r in train_rows])),

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import PsdError
-from ..psd import cumulative_curve, weighted_percentiles
+from ..psd import TARGETS, VOLUME_TARGETS, cumulative_curve, weighted_percentiles
 
 
 @dataclass(frozen=True)
@@ -48,12 +48,8 @@ def scene_labels(
         "n_particles": int(len(sizes)),
         "n_visible": int((visible_px >= p.visible_min_px).sum()),
         "covered_fraction": float(visible_px.sum() / image_px),  # image pixels showing a particle
-        "d10_mm": float(d_n[0]),
-        "d50_mm": float(d_n[1]),
-        "d90_mm": float(d_n[2]),
-        "d10_v_mm": float(d_v[0]),
-        "d50_v_mm": float(d_v[1]),
-        "d90_v_mm": float(d_v[2]),
+        **{t: float(d) for t, d in zip(TARGETS, d_n, strict=True)},
+        **{t: float(d) for t, d in zip(VOLUME_TARGETS, d_v, strict=True)},
         "psd_size_mm": grid.tolist(),
         "psd_q0": cumulative_curve(sizes, np.ones_like(sizes), grid).tolist(),
         "psd_q3": cumulative_curve(sizes, volumes, grid).tolist(),

@@ -17,13 +17,13 @@ from dataclasses import asdict
 import numpy as np
 
 from ... import PsdError
+from ...config import MAX_PARTICLES_16BIT
 from ...seeding import rng_for
 from ..geometry import Geometry
 from .cycles import render_cycles
 from .look import RenderParams, apply_sensor, draw_look, mm_per_px
 from .tiny import render_tiny
 
-MAX_PARTICLES_16BIT = 65534
 BACKENDS: dict[str, Callable] = {"tiny": render_tiny, "cycles": render_cycles}
 
 

@@ -22,11 +22,11 @@ from pathlib import Path
 import numpy as np
 
 from ... import PsdError
+from ...config import MAX_PARTICLES_CYCLES
 
 SCRIPT = Path(__file__).with_name("blender_job.py")  # package data: run by Blender's Python, never imported
 REPO = Path(__file__).resolve().parents[4]  # src/psdfactory/scene/render/cycles.py → the checkout
 DEFAULT_PYTHON = REPO / ".venv-blender" / "bin" / "python"
-MAX_PASS_INDEX = 32767  # Blender's Object.pass_index is a signed 16-bit value
 Range = tuple[float, float]
 
 
@@ -89,8 +89,9 @@ def render_cycles(spec: dict, geometry, pos_mm: np.ndarray, quats: np.ndarray, p
     """→ (rgb float32 HxWx3 in [0,1] before the sensor model, uint16 mask, extra metadata)."""
     c = p.cycles
     n = len(geometry)
-    if n > MAX_PASS_INDEX - 1:
-        raise PsdError(f"{n} particles: Blender's object index tops out at {MAX_PASS_INDEX}; use the tiny backend")
+    if n > MAX_PARTICLES_CYCLES:
+        raise PsdError(f"{n} particles: Blender's object index tops out at {MAX_PARTICLES_CYCLES + 1}; "
+                       "use the tiny backend")
     py = blender_python()
     extra = draw_cycles_look(rng, c, n)
     T = float(spec["table_size"])
