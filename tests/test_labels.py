@@ -54,7 +54,8 @@ def test_visible_pixels_and_bad_mask():
 
 def test_scene_labels():
     sizes = np.array([1.0, 2.0, 3.0, 4.0])
-    lab = scene_labels(sizes, sizes**3, np.array([0, 5, 1, 9]), 100, (0.5, 5.0), LabelParams(visible_min_px=2))
+    lab = scene_labels(sizes, sizes**3, np.array([0, 5, 1, 9]), 100, (0.5, 5.0),
+                       LabelParams(visible_min_px=2, psd_bins=32))
     assert lab["n_visible"] == 2
     assert lab["covered_fraction"] == pytest.approx(0.15)
     assert lab["d10_mm"] <= lab["d50_mm"] <= lab["d90_mm"]

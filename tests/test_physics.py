@@ -71,11 +71,13 @@ def test_quality_figures_flag_bad_poses():
     pos[1, 0] = 40.0  # beyond the wall at x = 30
     q = quality_figures(geo, pos, quat, np.ones(n, bool), min_contact_mm=-2.0, table_size=60.0, tol=0.5)
     assert q["below_floor"] == 1 and q["off_table"] == 1 and q["worst_penetration_mm"] == 2.0
-    problems = quality_problems(q, QualityBounds())
+    bounds = PhysicsParams.from_dict(psd_config.simulate_params(tiny_config())).quality  # the schema's defaults
+    assert isinstance(bounds, QualityBounds)
+    problems = quality_problems(q, bounds)
     assert len(problems) == 3
     pos[2, 2] = np.nan
     q = quality_figures(geo, pos, quat, np.ones(n, bool), 0.0, 60.0, 0.5)
-    assert any("blew up" in s for s in quality_problems(q, QualityBounds()))
+    assert any("blew up" in s for s in quality_problems(q, bounds))
 
 
 @pytest.mark.slow

@@ -76,6 +76,8 @@ def test_shadow_falls_away_from_light():
     assert s[5, 10] == 0
 
 
-def test_unknown_render_setting():
-    with pytest.raises(PsdError, match="unknown render setting"):
+def test_unknown_or_missing_render_setting():
+    with pytest.raises(PsdError, match="unknown render setting: resolutoin"):
         RenderParams.from_dict({"resolutoin": 64})
+    with pytest.raises(PsdError, match="render lacks .*resolution"):  # no second set of defaults
+        RenderParams.from_dict({"backend": "tiny"})

@@ -38,8 +38,9 @@ def dataset(tmp_path_factory):
 def params(**over):
     from psdfactory.learn.train import TrainParams
 
-    p = dict(arch="resnet18", dataset="tiny", pretrained="none", epochs=6, batch_size=3, lr=3e-3, input_size=32,
-             precision="fp32", seed=1, early_stopping_patience=50)
+    p = psd_config.train_params(tiny_config(), "resnet18")  # the schema's defaults, then these
+    p.update(pretrained="none", epochs=6, batch_size=3, lr=3e-3, input_size=32, precision="fp32", seed=1,
+             early_stopping_patience=50)
     p.update(over)
     return TrainParams.from_dict(p)
 

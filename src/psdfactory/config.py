@@ -8,6 +8,7 @@ triggers fire exactly where an edit changes a stage's inputs.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 from pathlib import Path
 
@@ -26,6 +27,21 @@ DEFAULT_INPUT_SIZE = {"inception_v3": 299}  # where the design size differs
 def default_input_size(arch: str) -> int:
     """The network input px of an architecture where train.input_size does not set it."""
     return DEFAULT_INPUT_SIZE.get(arch, DESIGN_INPUT_SIZE)
+
+
+def config_fields(cls, params: dict, key: str) -> dict:
+    """`params` (a config slice: the settings under `key`) as the keyword arguments of the
+    dataclass `cls`, which has one field per setting and no defaults of its own: the defaults
+    are the schema's, filled in when the config is validated. A key too many or too few is an
+    error that names it."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown, missing = sorted(set(params) - names), sorted(names - set(params))
+    if unknown:
+        raise PsdError(f"unknown {key} setting{'s' * (len(unknown) > 1)}: {', '.join(unknown)}")
+    if missing:
+        raise PsdError(f"{key} lacks {', '.join(missing)}: pass the validated config's slice "
+                       "(psdfactory.config: sample_params, simulate_params, ...)")
+    return dict(params)
 
 
 def validate(config: dict) -> dict:

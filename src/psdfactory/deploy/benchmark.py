@@ -76,7 +76,7 @@ def candidates(device: torch.device, caps: Capabilities) -> tuple[dict[str, Cand
     return paths, skipped
 
 
-def throughput(step: Callable[[], object], batch: int, seconds: float = 2.0, repeats: int = 5,
+def throughput(step: Callable[[], object], batch: int, seconds: float, repeats: int,
                sync: Callable[[], None] = lambda: None) -> dict:
     """Median images/s of `step` (one batch of `batch` images) over `repeats` timed runs of about
     `seconds` each, after a warm-up."""
@@ -127,8 +127,8 @@ def onnx_runners(model: nn.Module, size: int, keys: list[str], calibration: np.n
     return {k: OrtModel(files[k], torch.get_num_threads()) for k in keys}
 
 
-def benchmark_model(model: nn.Module, meta: dict, device: torch.device, results_root: Path | None = None,
-                    dataset: str | None = None, batch: int = 16, seconds: float = 2.0, repeats: int = 5,
+def benchmark_model(model: nn.Module, meta: dict, device: torch.device, results_root: Path | None,
+                    dataset: str | None, batch: int, seconds: float, repeats: int,
                     caps: Capabilities | None = None) -> dict:
     """Every candidate path on one device: speed at batch 1 and batched, and (with a dataset)
     accuracy on its test split; the fastest within the accuracy budget becomes the "fast" path.

@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from .. import PsdError, __version__
+from ..config import config_fields
 from ..io import atomic_path
 from ..psd import TARGETS
 from .augment import augment_d4, photometric, rescale
@@ -41,31 +42,32 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class TrainParams:
-    arch: str
-    dataset: str = "train"
-    pretrained: str = "auto"
-    epochs: int = 50
-    batch_size: int = 16
-    lr: float = 1e-4
-    weight_decay: float = 0.0
-    lr_factor: float = 0.5
-    lr_patience: int = 3
-    early_stopping_patience: int = 10
-    input_size: int = 224
-    precision: str = "auto"  # auto | fp32 | bf16 | fp16
-    device: str = "auto"
-    aux_loss_weight: float = 0.4
-    augment: bool = True
-    scale_augment: tuple[float, float] = (1.0, 1.0)
-    photometric: float = 0.0
-    seed: int = 0
+    """One architecture's training settings: the config's `train` section (defaults: the
+    schema's, config.schema.yaml) with the architecture, its input size and the seed
+    (config.train_params)."""
+
+    arch: str  # one of train.architectures
+    dataset: str
+    pretrained: str
+    epochs: int
+    batch_size: int
+    lr: float
+    weight_decay: float
+    lr_factor: float
+    lr_patience: int
+    early_stopping_patience: int
+    input_size: int  # train.input_size[arch], else config.default_input_size(arch)
+    precision: str  # auto | fp32 | bf16 | fp16
+    device: str
+    aux_loss_weight: float
+    augment: bool
+    scale_augment: tuple[float, float]
+    photometric: float
+    seed: int  # the config's seed
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainParams:
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise PsdError(f"unknown training settings: {sorted(unknown)}")
-        return cls(**d)
+        return cls(**config_fields(cls, d, "train"))
 
 
 def fingerprint(params: TrainParams, rows: list[dict]) -> str:

@@ -16,17 +16,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import PsdError
+from ..config import config_fields
 from ..psd import TARGETS, VOLUME_TARGETS, cumulative_curve, weighted_percentiles
 
 
 @dataclass(frozen=True)
 class LabelParams:
-    visible_min_px: int = 1  # a particle with at least this many mask pixels counts as visible
-    psd_bins: int = 32  # points of the cumulative curves, log-spaced over the size bounds
+    """The config's `labels` section (defaults: the schema's, config.schema.yaml)."""
+
+    visible_min_px: int  # a particle with at least this many mask pixels counts as visible
+    psd_bins: int  # points of the cumulative curves, log-spaced over the size bounds
 
     @classmethod
     def from_dict(cls, d: dict) -> LabelParams:
-        return cls(**d)
+        return cls(**config_fields(cls, d, "labels"))
 
 
 def visible_pixels(mask: np.ndarray, n_particles: int) -> np.ndarray:

@@ -9,11 +9,12 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from .. import PsdError
+from ..config import config_fields
 from ..seeding import rng_for
 from .geometry import CM, Geometry
 
@@ -22,42 +23,46 @@ GROUP_ACTIVE, GROUP_FROZEN, GROUP_WALLS = 1, 2, 4
 GROUP_ALL = GROUP_ACTIVE | GROUP_FROZEN | GROUP_WALLS
 
 
+# The config's `physics` section (defaults: the schema's, config.schema.yaml).
+
+
 @dataclass(frozen=True)
 class QualityBounds:
-    min_settled_fraction: float = 0.95
-    max_penetration_mm: float = 1.0
-    max_below_floor: int = 0  # particles whose lowest point is under the floor (beyond tolerance)
-    max_off_table: int = 0  # particles with a point outside the walls (beyond tolerance)
-    tolerance_mm: float = 0.5
+    min_settled_fraction: float
+    max_penetration_mm: float
+    max_below_floor: int  # particles whose lowest point is under the floor (beyond tolerance)
+    max_off_table: int  # particles with a point outside the walls (beyond tolerance)
+    tolerance_mm: float
 
 
 @dataclass(frozen=True)
 class PhysicsParams:
-    timestep_s: float = 1 / 240
-    solver_iterations: int = 20
-    max_time_s: float = 1.5
-    check_every_steps: int = 6
-    freeze_speed_mm_s: float = 20.0
-    freeze_spin_rad_s: float = 2.0
-    freeze_checks: int = 2
-    stop_frozen_fraction: float = 0.98
-    density_g_cm3: float = 2.6
-    max_mass_ratio: float = 100.0  # lighter particles are given mass_max / ratio (see _masses)
-    friction: float = 0.6
-    rolling_friction: float = 0.002
-    restitution: float = 0.05
-    collision_margin_mm: float = 0.05
-    contact_breaking_mm: float = 0.2
-    spawn_gap_mm: float = 0.5
-    contact_erp: float = 0.8  # measured: 0.2 leaves ~1 mm of penetration under load, 0.8 ~0.2 mm
-    retries: int = 3
-    quality: QualityBounds = field(default_factory=QualityBounds)
+    timestep_s: float
+    solver_iterations: int
+    max_time_s: float
+    check_every_steps: int
+    freeze_speed_mm_s: float
+    freeze_spin_rad_s: float
+    freeze_checks: int
+    stop_frozen_fraction: float
+    density_g_cm3: float
+    max_mass_ratio: float  # lighter particles are given mass_max / ratio (see particle_masses)
+    friction: float
+    rolling_friction: float
+    restitution: float
+    collision_margin_mm: float
+    contact_breaking_mm: float
+    spawn_gap_mm: float
+    contact_erp: float  # measured: 0.2 leaves ~1 mm of penetration under load, 0.8 ~0.2 mm
+    retries: int
+    quality: QualityBounds
 
     @classmethod
     def from_dict(cls, d: dict) -> PhysicsParams:
-        d = dict(d)
-        q = QualityBounds(**d.pop("quality", {}))
-        return cls(quality=q, **d)
+        """From the validated `physics` slice (config.simulate_params)."""
+        kw = config_fields(cls, d, "physics")
+        kw["quality"] = QualityBounds(**config_fields(QualityBounds, kw["quality"], "physics.quality"))
+        return cls(**kw)
 
 
 @dataclass

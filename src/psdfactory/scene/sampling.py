@@ -21,7 +21,8 @@ from .shapes import ShapeParams, make_particles, pack
 
 @dataclass(frozen=True)
 class SampleParams:
-    """The slice of the config that a scene's sample stage depends on."""
+    """The slice of the config that a scene's sample stage depends on: a dataset's settings
+    (defaults: the schema's, config.schema.yaml), flattened, with the seed and the scene's index."""
 
     seed: int
     dataset: str
@@ -33,13 +34,21 @@ class SampleParams:
     size_sigma: tuple[float, float]
     size_bounds: tuple[float, float]
     shape_params: dict
-    placement_candidates: int = 4
-    placement_cell_mm: float = 2.0
+    placement_candidates: int
+    placement_cell_mm: float
 
     @classmethod
     def from_dict(cls, d: dict) -> SampleParams:
-        size = d["size"]
-        placement = d.get("placement", {})
+        """From config.sample_params (one scene's: with its index)."""
+        try:
+            return cls._from_slice(d)
+        except KeyError as e:
+            raise PsdError(f"the sample params lack {e.args[0]!r}: pass the validated config's slice "
+                           "(psdfactory.config.sample_params)") from None
+
+    @classmethod
+    def _from_slice(cls, d: dict) -> SampleParams:
+        size, placement = d["size"], d["placement"]
         return cls(
             seed=int(d["seed"]),
             dataset=str(d["dataset"]),
@@ -50,9 +59,9 @@ class SampleParams:
             size_mean=tuple(map(float, size["mean"])),
             size_sigma=tuple(map(float, size["sigma"])),
             size_bounds=tuple(map(float, size["bounds"])),
-            shape_params=dict(d.get("shape_params", {})),
-            placement_candidates=int(placement.get("candidates", 4)),
-            placement_cell_mm=float(placement.get("cell_mm", 2.0)),
+            shape_params=dict(d["shape_params"]),
+            placement_candidates=int(placement["candidates"]),
+            placement_cell_mm=float(placement["cell_mm"]),
         )
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ... import PsdError
-from ...config import MAX_PARTICLES_CYCLES
+from ...config import MAX_PARTICLES_CYCLES, config_fields
 
 SCRIPT = Path(__file__).with_name("blender_job.py")  # package data: run by Blender's Python, never imported
 REPO = Path(__file__).resolve().parents[4]  # src/psdfactory/scene/render/cycles.py → the checkout
@@ -32,28 +32,26 @@ Range = tuple[float, float]
 
 @dataclass(frozen=True)
 class CyclesParams:
-    samples: int = 16
-    denoise: bool = True
-    max_bounces: int = 4
-    device: str = "auto"  # auto | cpu | gpu
-    threads: int = 0  # 0 = all cores
-    roughness: Range = (0.55, 0.95)
-    sun_strength: Range = (2.5, 4.0)  # W/m²
-    sun_angle_deg: Range = (0.5, 3.0)  # apparent size of the sun: soft shadow edges
-    sky_strength: Range = (0.25, 0.5)
-    sky_rgb: tuple[float, float, float] = (0.78, 0.84, 0.95)
-    bump_mm: float = 0.6  # scale of the particles' surface detail
-    grain_mm: float = 1.5  # scale of the table's texture
-    timeout_s: float = 3600.0
+    """The config's `render.cycles` section (defaults: the schema's, config.schema.yaml)."""
+
+    samples: int
+    denoise: bool
+    max_bounces: int
+    device: str  # auto | cpu | gpu
+    threads: int  # 0 = all cores
+    roughness: Range
+    sun_strength: Range  # W/m²
+    sun_angle_deg: Range  # apparent size of the sun: soft shadow edges
+    sky_strength: Range
+    sky_rgb: tuple[float, float, float]
+    bump_mm: float  # scale of the particles' surface detail
+    grain_mm: float  # scale of the table's texture
+    timeout_s: float
 
     @classmethod
-    def from_dict(cls, d: dict | None) -> CyclesParams:
-        kw = {}
-        for k, v in (d or {}).items():
-            if k not in cls.__dataclass_fields__:
-                raise PsdError(f"unknown render.cycles setting {k!r}")
-            kw[k] = tuple(v) if isinstance(v, list) else v
-        return cls(**kw)
+    def from_dict(cls, d: dict) -> CyclesParams:
+        kw = config_fields(cls, d, "render.cycles")
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in kw.items()})
 
 
 def blender_python() -> Path:

@@ -11,6 +11,7 @@ import numpy as np
 from scipy import ndimage
 
 from ... import PsdError
+from ...config import config_fields
 from .cycles import CyclesParams
 
 Range = tuple[float, float]
@@ -18,47 +19,51 @@ Range = tuple[float, float]
 
 @dataclass(frozen=True)
 class RenderParams:
-    backend: str = "tiny"
-    resolution: int = 512
-    supersample: int = 2
-    camera_height_mm: float = 20000.0
+    """The config's `render` section (defaults: the schema's, config.schema.yaml)."""
+
+    backend: str
+    resolution: int
+    supersample: int
+    camera_height_mm: float
     # light: direction toward the light, drawn per scene
-    light_azimuth_deg: Range = (0.0, 360.0)
-    light_elevation_deg: Range = (35.0, 70.0)
-    light_intensity: Range = (0.85, 1.15)
-    ambient: Range = (0.35, 0.5)
-    shadow_strength: Range = (0.35, 0.6)
-    occlusion_strength: Range = (0.4, 0.8)
+    light_azimuth_deg: Range
+    light_elevation_deg: Range
+    light_intensity: Range
+    ambient: Range
+    shadow_strength: Range
+    occlusion_strength: Range
     # materials
-    palette: tuple[tuple[float, float, float], ...] = ((0.55, 0.52, 0.48), (0.45, 0.40, 0.35), (0.62, 0.60, 0.58))
-    particle_brightness: Range = (0.75, 1.25)
-    particle_hue_jitter: float = 0.03
-    surface_detail: float = 0.06
-    table_rgb: tuple[float, float, float] = (0.22, 0.24, 0.27)
-    table_brightness: Range = (0.8, 1.2)
-    table_texture: float = 0.08
+    palette: tuple[tuple[float, float, float], ...]
+    particle_brightness: Range
+    particle_hue_jitter: float
+    surface_detail: float
+    table_rgb: tuple[float, float, float]
+    table_brightness: Range
+    table_texture: float
     # camera / sensor
-    exposure: Range = (0.9, 1.1)
-    white_balance_jitter: float = 0.04
-    vignetting: Range = (0.0, 0.15)
-    blur_px: Range = (0.0, 0.5)
-    noise_sigma: Range = (0.004, 0.015)  # read noise, fraction of full scale
-    shot_noise: Range = (0.002, 0.01)
-    cycles: CyclesParams = field(default_factory=CyclesParams)  # the Cycles backend's settings
+    exposure: Range
+    white_balance_jitter: float
+    vignetting: Range
+    blur_px: Range
+    noise_sigma: Range  # read noise, fraction of full scale
+    shot_noise: Range
+    # the Cycles backend's settings: None where another backend renders (config.render_params
+    # leaves them out of that slice, so that editing them reruns nothing)
+    cycles: CyclesParams | None
 
     @classmethod
     def from_dict(cls, d: dict) -> RenderParams:
-        kw = {}
-        for k, v in d.items():
-            if k not in cls.__dataclass_fields__:
-                raise PsdError(f"unknown render setting {k!r}")
+        kw = config_fields(cls, {"cycles": None, **d}, "render")
+        for k, v in kw.items():
             if k == "cycles":
-                v = CyclesParams.from_dict(v)
+                if v is not None:
+                    kw[k] = CyclesParams.from_dict(v)
+                elif kw["backend"] == "cycles":
+                    raise PsdError("render.backend 'cycles' needs the render.cycles settings in the slice")
             elif k == "palette":
-                v = tuple(tuple(map(float, c)) for c in v)
+                kw[k] = tuple(tuple(map(float, c)) for c in v)
             elif isinstance(v, list):
-                v = tuple(v)
-            kw[k] = v
+                kw[k] = tuple(v)
         return cls(**kw)
 
 
