@@ -127,8 +127,10 @@ def tree_digest(root):
     """Every file under root with its size, mtime and content hash."""
     import hashlib
 
-    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns, hashlib.sha256(p.read_bytes()).hexdigest())
-            for p in sorted(root.rglob("*")) if p.is_file()}
+    def digest(p):
+        return p.stat().st_size, p.stat().st_mtime_ns, hashlib.sha256(p.read_bytes()).hexdigest()
+
+    return {str(p.relative_to(root)): digest(p) for p in sorted(root.rglob("*")) if p.is_file()}
 
 
 # ---- scenes_per_job > 1: batch jobs that skip up-to-date scenes ----------------------------
