@@ -294,8 +294,11 @@ def test_a_crafted_model_file_is_refused_and_runs_nothing(tmp_path, capsys):
     evil = tmp_path / "model.pt"
     torch.save({"meta": {"arch": "resnet18"}, "state_dict": {}, "payload": _WritesAFile(victim)}, evil)
     assert not victim.exists()
-    with pytest.raises(PsdError, match="refused: it holds Python objects.*weights_only=True"):
+    with pytest.raises(PsdError, match="refused: it holds Python objects.*could run code "
+                                       r"\(Unsupported global: GLOBAL io.open\).*weights_only=True.*runs nothing") as e:
         load_model(evil)
+    msg = str(e.value)
+    assert str(evil) in msg and "\x1b" not in msg and "weights_only` set to `False`" not in msg
     img = tmp_path / "a.png"
     from PIL import Image
 
@@ -419,14 +422,25 @@ def test_predict_finds_images_in_subfolders_and_skips_masks(tmp_path):
     assert expand_inputs([str(tmp_path / "a/scenes/s1/mask.png")]) == [tmp_path / "a/scenes/s1/mask.png"]  # named: kept
 
 
-def test_onnx_meta_json_with_wrong_types_is_refused(tmp_path):
-    from psdfactory.deploy.predict import load_predictor, meta_problems
+GOOD_META = {"arch": "resnet18", "input_size": 32, "image_resolution": 32, "mm_per_px": 0.5,
+             "target_stats": {"mean": [1.0, 2.0, 3.0], "std": [0.5, 0.5, 0.5], "part_mean": [1.0, 1.0, 1.0],
+                              "part_std": [0.2, 0.2, 0.2]}}
 
-    good = {"arch": "resnet18", "input_size": 32, "image_resolution": 32, "mm_per_px": 0.5}
+
+def test_onnx_meta_json_with_wrong_types_is_refused(tmp_path):
+    from psdfactory.deploy.predict import load_predictor
+    from psdfactory.learn.runtime import meta_problems
+
+    good = GOOD_META
     assert meta_problems(good) == []
-    assert meta_problems([1, 2]) == ["it must hold a JSON object"]
+    assert meta_problems([1, 2]) == ["it must hold a JSON object / dict"]
     bad = {**good, "input_size": "32", "mm_per_px": -1}
     assert [p.split(" ")[0] for p in meta_problems(bad)] == ["input_size", "mm_per_px"]
+    for stats in ({**good["target_stats"], "std": [0.5, 0.5]}, {**good["target_stats"], "std": [0.5, 0.0, 0.5]},
+                  {**good["target_stats"], "mean": ["1", 2, 3]}, {"mean": [1, 2, 3]}, [1, 2, 3]):
+        assert [p.split(" ")[0] for p in meta_problems({**good, "target_stats": stats})] == ["target_stats"], stats
+    assert [p.split(" ")[0] for p in meta_problems({**good, "input_size": 10**9, "image_resolution": True,
+                                                    "arch": "os.system"})] == ["arch", "input_size", "image_resolution"]
     (tmp_path / "model.onnx").write_bytes(b"not onnx")
     (tmp_path / "meta.json").write_text(json.dumps(bad))
     with pytest.raises(PsdError, match="meta.json refused: input_size is missing or not valid"):
@@ -434,3 +448,59 @@ def test_onnx_meta_json_with_wrong_types_is_refused(tmp_path):
     (tmp_path / "meta.json").write_text("{oops")
     with pytest.raises(PsdError, match="not readable JSON"):
         load_predictor(tmp_path / "model.onnx")
+    (tmp_path / "meta.json").write_text(json.dumps({**good, "pad": "x" * 2_000_000}))
+    with pytest.raises(PsdError, match="meta.json refused: .* bytes"):
+        load_predictor(tmp_path / "model.onnx")
+
+
+def test_a_model_file_with_a_hostile_meta_is_refused_before_anything_is_built(tmp_path):
+    """Plain data that loads safely, but would make predict resize every image to 10⁹ px."""
+    from psdfactory.learn.runtime import load_model
+
+    f = tmp_path / "model.pt"
+    torch.save({"meta": {**GOOD_META, "input_size": 10**9}, "state_dict": {}}, f)
+    with pytest.raises(PsdError, match=r"model.pt is not a psdfactory model: its meta is refused: input_size"):
+        load_model(f)
+    torch.save([1, 2, 3], f)
+    with pytest.raises(PsdError, match="not a psdfactory model .*list"):
+        load_model(f)
+
+
+def test_a_model_psdfactory_writes_loads_with_weights_only(tmp_path):
+    from psdfactory.learn.models import TargetStats, build_model
+    from psdfactory.learn.runtime import load_model, save_model
+
+    stats = TargetStats(**GOOD_META["target_stats"])
+    model, _ = build_model("resnet18", stats, "none", size=32)
+    save_model(tmp_path / "model.pt", model, {**GOOD_META, "params": {"scale_augment": (1.0, 1.0)}})
+    loaded, meta = load_model(tmp_path / "model.pt")
+    assert meta["input_size"] == 32 and meta["params"]["scale_augment"] == (1.0, 1.0)
+    x = torch.rand(1, 3, 32, 32)
+    torch.testing.assert_close(loaded(x), model.eval()(x))
+
+
+def test_the_resume_checkpoint_is_plain_data_that_loads_with_weights_only(tmp_path):
+    """last.pt as training writes it (Adam, ReduceLROnPlateau, generator states, history) loads
+    with weights_only=True, and restores the optimizer, scheduler and random streams exactly."""
+    from psdfactory.learn.runtime import load_checkpoint
+    from psdfactory.learn.train import History, resume_state
+
+    model = torch.nn.Linear(3, 3)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, patience=1)
+    model(torch.rand(4, 3)).sum().backward()
+    opt.step()
+    sched.step(0.5)
+    gen, loader_gen = torch.Generator().manual_seed(1), torch.Generator().manual_seed(2)
+    history = History([{"epoch": 1, "train_loss": 0.5, "val_loss": 0.4, "val_mae_mm": 0.3, "lr": 1e-3, "seconds": 1.0}])
+    state = resume_state("abc", 0, model, opt, sched, gen, loader_gen, history, np.float64(0.4), 1, 0)
+    torch.save(state, tmp_path / "last.pt")
+    ck = load_checkpoint(tmp_path / "last.pt", "training checkpoint")
+    opt2 = torch.optim.Adam(torch.nn.Linear(3, 3).parameters(), lr=1e-3)
+    opt2.load_state_dict(ck["optimizer"])
+    sched2 = torch.optim.lr_scheduler.ReduceLROnPlateau(opt2, patience=1)
+    sched2.load_state_dict(ck["scheduler"])
+    assert sched2.best == 0.5 and ck["best"] == 0.4 and ck["history"] == history.rows
+    g = torch.Generator()
+    g.set_state(ck["gen"])
+    assert torch.equal(torch.rand(5, generator=g), torch.rand(5, generator=gen))

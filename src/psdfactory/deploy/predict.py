@@ -52,20 +52,6 @@ def prepare(image: np.ndarray, meta: dict, mm_per_px: float | None) -> torch.Ten
     return t.round().clamp(0, 255).to(torch.uint8)
 
 
-def meta_problems(meta: object) -> list[str]:
-    """What is wrong with an exported model's meta.json (the keys predict relies on, their types
-    and sane ranges); empty when it is fine."""
-    if not isinstance(meta, dict):
-        return ["it must hold a JSON object"]
-    checks = {
-        "arch": lambda v: isinstance(v, str) and 0 < len(v) < 100,
-        "input_size": lambda v: isinstance(v, int) and not isinstance(v, bool) and 16 <= v <= 4096,
-        "image_resolution": lambda v: isinstance(v, int) and not isinstance(v, bool) and 16 <= v <= 65536,
-        "mm_per_px": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < 1e4,
-    }
-    return [f"{k} is missing or not valid (got {meta.get(k)!r})" for k, ok in checks.items() if not ok(meta.get(k))]
-
-
 def load_predictor(model_path: Path, device: str = "cpu"):
     """→ (function: normalised float N×3×S×S tensor → N×3 mm array, meta). A `model.pt` runs in
     PyTorch; an exported `.onnx` (fp32 or int8, with the export's meta.json beside it) runs in
@@ -74,6 +60,7 @@ def load_predictor(model_path: Path, device: str = "cpu"):
     if model_path.suffix == ".onnx":
         import json
 
+        from ..learn.runtime import meta_problems
         from .quantize import OrtModel, require_onnxruntime
 
         require_onnxruntime(f"the ONNX model {model_path}")
@@ -83,6 +70,8 @@ def load_predictor(model_path: Path, device: str = "cpu"):
             raise PsdError(f"model file not found: {model_path}")
         if not meta_path.is_file():
             raise PsdError(f"{meta_path} is missing: an ONNX model needs the meta.json that `psdfactory export` writes beside it")
+        if meta_path.stat().st_size > 1_000_000:
+            raise PsdError(f"{meta_path} refused: {meta_path.stat().st_size} bytes is far more than an export's meta.json holds")
         try:
             meta = json.loads(meta_path.read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:

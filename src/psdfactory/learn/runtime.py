@@ -106,29 +106,78 @@ def save_model(path: Path, model: nn.Module, meta: dict) -> None:
         torch.save({"meta": meta, "state_dict": state}, tmp)
 
 
+def unpickling_reason(e: Exception) -> str:
+    """The line of torch's weights-only refusal that says what the file holds (e.g. "Unsupported
+    global: GLOBAL io.open ..."), without its advice on how to load the file unsafely."""
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    found = [ln.split("error:", 1)[-1].strip() for ln in lines if "WeightsUnpickler error" in ln]
+    text = found[0] if found else (lines[0] if lines else type(e).__name__)
+    return text.split(" was not an allowed global")[0].replace("\x1b[1m", "").replace("\x1b[0m", "")[:160]
+
+
 def load_checkpoint(path: Path, what: str = "psdfactory model") -> dict:
     """A file written by torch.save, loaded with ``weights_only=True``: tensors and plain data
-    only. A file that holds other Python objects (which unpickling would construct, and so could
-    run code) is refused, and nothing in it is run."""
+    (dict, list, tuple, str, int, float, bool, None) only. A file that holds other Python objects
+    (which unpickling would construct, and so could run code) is refused, and nothing in it runs."""
     import pickle
 
     path = Path(path)
     if not path.is_file():
         raise PsdError(f"{what} file not found: {path}")
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise PsdError(f"{path} refused: it holds Python objects, not just tensors and plain data, and loading it "
-                       f"could run code ({first[:160]}); psdfactory loads model files with weights_only=True "
-                       "— use a model.pt that psdfactory wrote") from None
+                       f"could run code ({unpickling_reason(e)}); psdfactory loads model files with weights_only=True "
+                       f"and runs nothing in them; this is not a {what} "
+                       "(psdfactory writes only tensors and plain data)") from None
     except Exception as e:
         raise PsdError(f"{path} is not a {what} ({type(e).__name__}: {e})") from None
+    if not isinstance(ckpt, dict):
+        raise PsdError(f"{path} is not a {what} (it holds a {type(ckpt).__name__}, not a dict)")
+    return ckpt
+
+
+def _is_int(v: object, lo: int, hi: int) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi
+
+
+def _is_number(v: object, lo: float, hi: float) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and lo < v < hi
+
+
+def _is_stats(v: object) -> bool:
+    """TargetStats as plain data: four lists of three finite numbers, the spreads positive."""
+    if not isinstance(v, dict) or set(v) != {"mean", "std", "part_mean", "part_std"}:
+        return False
+    ok = lambda xs, lo: isinstance(xs, list) and len(xs) == 3 and all(_is_number(x, lo, 1e9) for x in xs)  # noqa: E731
+    return ok(v["mean"], -1e9) and ok(v["part_mean"], -1e9) and ok(v["std"], 0) and ok(v["part_std"], 0)
+
+
+META_CHECKS = {  # what a model's meta must hold before anything is built or resized from it
+    "arch": lambda v: isinstance(v, str) and 0 < len(v) < 100 and v.replace("_", "").isalnum(),
+    "input_size": lambda v: _is_int(v, 16, 4096),
+    "image_resolution": lambda v: _is_int(v, 16, 65536),
+    "mm_per_px": lambda v: _is_number(v, 0, 1e4),
+    "target_stats": _is_stats,
+}
+
+
+def meta_problems(meta: object) -> list[str]:
+    """What is wrong with a model's metadata (model.pt's ``meta``, an export's meta.json): the
+    keys predict and evaluate rely on, their types and sane ranges. Empty when it is fine."""
+    if not isinstance(meta, dict):
+        return ["it must hold a JSON object / dict"]
+    return [f"{k} is missing or not valid (got {str(meta.get(k))[:80]!r})" for k, ok in META_CHECKS.items()
+            if not ok(meta.get(k))]
 
 
 def load_model(path: Path, device: torch.device | str = "cpu") -> tuple[nn.Module, dict]:
     path = Path(path)
     ckpt = load_checkpoint(path)
+    problems = meta_problems(ckpt.get("meta"))
+    if problems:
+        raise PsdError(f"{path} is not a psdfactory model: its meta is refused: " + "; ".join(problems))
     try:
         meta = ckpt["meta"]
         stats = TargetStats(**meta["target_stats"])

@@ -118,6 +118,18 @@ def run_epoch(model, loader, stats, opt, device, precision, aux_weight, gen, par
     return total / max(n, 1)
 
 
+def resume_state(fp: str, epoch: int, model, opt, sched, gen: torch.Generator, loader_gen: torch.Generator,
+                 history: History, best: float, best_epoch: int, stale: int) -> dict:
+    """What checkpoints/last.pt holds to resume training exactly: tensors and plain data only
+    (state dicts, the generators' ByteTensor states), so that it loads with weights_only=True."""
+    return {
+        "fingerprint": fp, "epoch": epoch, "model": model.state_dict(), "optimizer": opt.state_dict(),
+        "scheduler": sched.state_dict(), "gen": gen.get_state(), "loader_gen": loader_gen.get_state(),
+        "torch_rng": torch.get_rng_state(), "history": history.rows, "best": float(best),
+        "best_epoch": int(best_epoch), "stale": int(stale),
+    }
+
+
 def train(params: TrainParams, results_root: Path, out_dir: Path) -> dict:
     from tqdm import tqdm
 
@@ -220,12 +232,8 @@ def train(params: TrainParams, results_root: Path, out_dir: Path) -> dict:
         logger.info(f"epoch {epoch + 1}: train loss {train_loss:.4f}, val loss {val_loss:.4f}, "
                     f"val MAE {val_mae:.3f} mm, lr {lr:.2e}, {row['seconds']:.0f} s{' (best)' if improved else ''}")
         with atomic_path(last_path) as tmp:
-            torch.save({
-                "fingerprint": fp, "epoch": epoch, "model": model.state_dict(), "optimizer": opt.state_dict(),
-                "scheduler": sched.state_dict(), "gen": gen.get_state(), "loader_gen": loader_gen.get_state(),
-                "torch_rng": torch.get_rng_state(), "history": history.rows, "best": best,
-                "best_epoch": best_epoch, "stale": stale,
-            }, tmp)
+            state = resume_state(fp, epoch, model, opt, sched, gen, loader_gen, history, best, best_epoch, stale)
+            torch.save(state, tmp)
         history.write_csv(out_dir / "history.csv")
         if stale >= params.early_stopping_patience:
             stop_reason = f"early stopping (no better val loss for {stale} epochs)"
