@@ -119,23 +119,29 @@ def cmd_ceiling(a: argparse.Namespace) -> None:
 
 
 def cmd_predict(a: argparse.Namespace) -> int:
-    from .deploy.predict import predict_files, write_predictions
+    from .deploy.predict import partial_path, stream_predictions
     from .psd import TARGETS
 
-    rows = predict_files(Path(a.model), a.images, a.mm_per_px, device=a.device)
-    # the table is the command's output (stdout); its notes are log records (stderr)
-    print(f"{'image':<50} " + " ".join(f"{t:>8}" for t in TARGETS))
-    for r in rows:
+    def emit(r: dict) -> None:  # the table is the command's output (stdout), a row as soon as it is made
         if r["error"]:
-            print(f"{r['image']:<50} error: {r['error']}")
+            print(f"{r['image']:<50} error: {r['error']}", flush=True)
         else:
-            print(f"{r['image']:<50} " + " ".join(f"{r[t]:>8.3f}" for t in TARGETS))
-    if a.out:
-        write_predictions(rows, Path(a.out))
-        logger.info(f"wrote {a.out}")
-    failed = sum(bool(r["error"]) for r in rows)
+            print(f"{r['image']:<50} " + " ".join(f"{r[t]:>8.3f}" for t in TARGETS), flush=True)
+
+    out = Path(a.out) if a.out else None
+    print(f"{'image':<50} " + " ".join(f"{t:>8}" for t in TARGETS))
+    try:
+        n, failed = stream_predictions(Path(a.model), a.images, out, a.mm_per_px, device=a.device, resume=a.resume,
+                                       emit=emit)
+    except KeyboardInterrupt:
+        if out is not None:
+            logger.error(f"psdfactory predict: interrupted; the rows done so far are in {partial_path(out)} "
+                         "(rerun with --resume to go on)")
+        return 130
+    if out is not None:
+        logger.info(f"wrote {out}")
     if failed:
-        logger.error(f"psdfactory predict: {failed} of {len(rows)} images could not be read")
+        logger.error(f"psdfactory predict: {failed} of {n} images could not be read")
     return 1 if failed else 0
 
 
@@ -246,7 +252,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("predict", help="d10/d50/d90 in mm for image files or folders")
     p.add_argument("--model", required=True, help="a model.pt written by training, or an exported .onnx (fp32 or int8)")
     p.add_argument("--mm-per-px", type=float, help="scale of the images; they are rescaled to the model's scale")
-    p.add_argument("--out", help="write the predictions to this .csv or .json file")
+    p.add_argument("--out", help="write the predictions to this .csv or .json file (rows go to <out>.partial.csv as "
+                   "they come; it becomes <out> when every image is done)")
+    p.add_argument("--resume", action="store_true",
+                   help="skip the images that already have a prediction in --out or its .partial.csv "
+                        "(failed ones are retried)")
     p.add_argument("--device", default="cpu")
     p.add_argument("images", nargs="+", help="image files and/or folders of images")
     p.set_defaults(func=cmd_predict)

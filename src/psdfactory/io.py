@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -16,6 +18,7 @@ from . import PsdError
 
 if TYPE_CHECKING:
     import pyarrow
+    from PIL import Image
 
 
 @contextmanager
@@ -112,20 +115,129 @@ def write_png(path: str | os.PathLike, array: np.ndarray) -> None:
         img.save(tmp, format="PNG")
 
 
-def read_png(path: str | os.PathLike) -> np.ndarray:
+# ---- images: one reader for the factory's own PNGs and for any photo given to predict ---------
+
+REDUCE_ABOVE_PIXELS = 4_000_000  # a photo larger than this is decoded reduced (read_photo)
+SIXTEEN_BIT = ("I;16", "I;16B", "I;16L", "I;16N")
+# EXIF orientation → the transpose that shows the image upright (as PIL.ImageOps.exif_transpose)
+ORIENTATION = {2: "FLIP_LEFT_RIGHT", 3: "ROTATE_180", 4: "FLIP_TOP_BOTTOM", 5: "TRANSPOSE", 6: "ROTATE_270",
+               7: "TRANSVERSE", 8: "ROTATE_90"}
+
+
+def pixel_limit() -> int:
+    """The most pixels an image may have: PIL's decompression-bomb limit (Image.MAX_IMAGE_PIXELS)."""
+    from PIL import Image
+
+    return int(Image.MAX_IMAGE_PIXELS or 2**62)
+
+
+@contextmanager
+def open_image(path: str | os.PathLike, max_pixels: int | None = None) -> Iterator[Image.Image]:
+    """An image opened lazily: only its header is read, and its size is checked against
+    `max_pixels` (default: `pixel_limit()`) before a single pixel is decoded, so a decompression
+    bomb is refused at once. Any failure — missing, unreadable, empty, not an image, truncated,
+    too large — is a PsdError naming the file and the reason (also for what the block decodes)."""
     from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
+    limit = max_pixels or pixel_limit()
+    bomb = (f"{path} refused: its header declares {{}} pixels, more than the limit of {limit:,} (a decompression "
+            "bomb, or an image far larger than a photo); nothing was decoded — crop or downscale it")
     if not path.is_file():
         raise PsdError(f"missing image: {path}")
     try:
-        with Image.open(path) as img:
-            img.load()
-            if img.mode in ("I;16", "I;16B", "I;16L", "I"):
-                return np.asarray(img).astype(np.uint16)
-            return np.asarray(img.convert("RGB"))
-    except (UnidentifiedImageError, OSError, SyntaxError) as e:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            img = Image.open(path)
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
+        found = re.search(r"\((\d+) pixels\)", str(e))  # PIL: "Image size (N pixels) exceeds limit of ..."
+        raise PsdError(bomb.format(f"{int(found.group(1)):,}" if found else f"more ({e})")) from None
+    except PermissionError as e:
+        raise PsdError(f"{path} cannot be read: permission denied ({e.strerror or e})") from None
+    except UnidentifiedImageError:
+        what = "an empty file (0 bytes)" if path.stat().st_size == 0 else "not an image format PIL can read"
+        raise PsdError(f"{path} is not a readable image: {what}") from None
+    except (OSError, SyntaxError, ValueError, EOFError) as e:
         raise PsdError(f"{path} is not a readable image ({e})") from None
+    with img:
+        w, h = img.size
+        if w * h > limit:
+            raise PsdError(bomb.format(f"{w} x {h} = {w * h:,}"))
+        try:
+            yield img
+        except (OSError, SyntaxError, ValueError, EOFError, IndexError, Image.DecompressionBombError) as e:
+            reason = "truncated: the file ends before the image does" if "truncated" in str(e) else str(e)
+            raise PsdError(f"{path} is not a readable image ({reason})") from None
+        except MemoryError:
+            raise PsdError(f"{path}: not enough memory to decode {w} x {h} pixels") from None
+
+
+def read_png(path: str | os.PathLike) -> np.ndarray:
+    """The factory's own images, pixel for pixel: RGB uint8 (H, W, 3), or a 16-bit mask as
+    uint16 (H, W)."""
+    with open_image(path) as img:
+        img.load()
+        if img.mode in SIXTEEN_BIT + ("I",):
+            return np.asarray(img).astype(np.uint16)
+        return np.asarray(img.convert("RGB"))
+
+
+def reduce_factor(size_hw: tuple[int, int], need_hw: tuple[int, int] | None,
+                  reduce_above: int = REDUCE_ABOVE_PIXELS) -> int:
+    """By how much a photo of `size_hw` may be shrunk (an integer) while keeping at least twice
+    the pixels the caller needs on each axis; 1 for images up to `reduce_above` pixels (read
+    as they are)."""
+    h, w = size_hw
+    if need_hw is None or h * w <= reduce_above:
+        return 1
+    return max(1, int(min(h / max(need_hw[0], 1), w / max(need_hw[1], 1)) // 2))
+
+
+def to_rgb8(img: Image.Image, path: Path) -> np.ndarray:
+    """Any decoded PIL image as RGB uint8 (H, W, 3): 16-bit scaled to 8 (÷257), greyscale and
+    palettes expanded, CMYK converted, an alpha channel dropped."""
+    if img.mode == "I":
+        a = np.asarray(img).astype(np.float32)
+        hi = 65535.0 if a.max(initial=0) <= 65535 else float(a.max())
+        grey = np.rint(np.clip(a, 0, None) * (255.0 / hi)).astype(np.uint8)
+        return np.repeat(grey[:, :, None], 3, axis=2)
+    if img.mode == "F":
+        raise PsdError(f"{path} has 32-bit float pixels (not a camera image): save it as an 8- or 16-bit image")
+    return np.asarray(img.convert("RGB"))
+
+
+def read_photo(path: str | os.PathLike, need=None, max_pixels: int | None = None,
+               reduce_above: int | None = None) -> tuple[np.ndarray, tuple[int, int]]:
+    """Any image file as an upright RGB uint8 (H, W, 3) array, and its upright size (H, W) as
+    stored. `need(h, w)` → the (height, width) the caller will resize it to: a photo larger than
+    `reduce_above` pixels is decoded reduced (JPEG: at 1/2, 1/4 or 1/8 scale in the decoder,
+    `Image.draft`; other formats: `Image.reduce` of the 8-bit pixels), keeping at least twice
+    what is needed, so no full-size float copy is ever made. The EXIF orientation is applied."""
+    from PIL import Image
+
+    with open_image(path, max_pixels) as img:
+        try:
+            orientation = img.getexif().get(0x0112, 1)
+        except Exception:  # a broken EXIF block: show the image as stored
+            orientation = 1
+        w, h = img.size
+        upright = (w, h) if orientation in (5, 6, 7, 8) else (h, w)
+        above = REDUCE_ABOVE_PIXELS if reduce_above is None else reduce_above
+        k = reduce_factor(upright, need(*upright) if need else None, above)
+        tw, th = -(-w // k), -(-h // k)  # the stored image's size reduced by k, rounded up
+        if k > 1 and img.format == "JPEG":
+            img.draft("RGB", (tw, th))  # the decoder scales by 1/2, 1/4 or 1/8, never below (tw, th)
+        img.load()
+        if img.mode in SIXTEEN_BIT:
+            img = img.convert("I")
+        elif img.mode in ("1", "P", "PA"):
+            img = img.convert("RGB")
+        r = min(img.size[0] // tw, img.size[1] // th)  # what the decoder has not reduced yet
+        if r > 1:
+            img = img.reduce(r)
+        if orientation in ORIENTATION:
+            img = img.transpose(getattr(Image.Transpose, ORIENTATION[orientation]))
+        return to_rgb8(img, Path(path)), upright
 
 
 def pyplot():

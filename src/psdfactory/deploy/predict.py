@@ -3,7 +3,13 @@
 from __future__ import annotations
 
 import csv
+import datetime
+import json
 import logging
+import os
+import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -11,9 +17,10 @@ import torch
 from torch.nn import functional as F
 
 from .. import PsdError
-from ..io import atomic_path, read_png, write_json
+from ..io import read_photo, write_json
 from ..learn.data import normalise, to_input
 from ..learn.models import main_output
+from ..psd import TARGETS
 
 logger = logging.getLogger(__name__)
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
@@ -40,13 +47,27 @@ def network_scale(meta: dict) -> float:
     return meta["mm_per_px"] * meta["image_resolution"] / meta["input_size"]
 
 
-def prepare(image: np.ndarray, meta: dict, mm_per_px: float | None) -> torch.Tensor:
-    """uint8 image → uint8 1x3xHxW tensor at the scale the network was trained on."""
+MAX_NETWORK_PIXELS = 4096 * 4096  # the largest input the network is run on (memory grows with it)
+
+
+def target_size(h: int, w: int, meta: dict, mm_per_px: float | None) -> tuple[int, int]:
+    """(height, width) an image of h x w px is resized to before the network: the model's input
+    size (same field of view as training assumed), or with `mm_per_px` the model's scale."""
+    if mm_per_px is None:
+        return meta["input_size"], meta["input_size"]
+    scale = mm_per_px / network_scale(meta)
+    return max(32, round(h * scale)), max(32, round(w * scale))
+
+
+def prepare(image: np.ndarray, meta: dict, mm_per_px: float | None, size_hw: tuple[int, int] | None = None) -> torch.Tensor:
+    """uint8 image → uint8 1x3xHxW tensor at the scale the network was trained on. `size_hw`: the
+    image's full size when `image` was decoded reduced (read_photo), so the scale stays exact."""
+    size = target_size(*(size_hw or image.shape[:2]), meta, mm_per_px)
+    if size[0] * size[1] > MAX_NETWORK_PIXELS:
+        raise PsdError(f"at the model's scale this image is {size[1]} x {size[0]} px, more than the "
+                       f"{MAX_NETWORK_PIXELS:,} px the network is run on: crop it, or check --mm-per-px")
     if mm_per_px is None:
         return to_input(image, meta["input_size"])[None]  # same field of view as training assumed
-    scale = mm_per_px / network_scale(meta)
-    h, w = image.shape[:2]
-    size = (max(32, round(h * scale)), max(32, round(w * scale)))
     t = torch.from_numpy(np.array(image, dtype=np.uint8, copy=True)).permute(2, 0, 1)[None].float()
     t = F.interpolate(t, size=size, mode="bilinear", antialias=True, align_corners=False)
     return t.round().clamp(0, 255).to(torch.uint8)
@@ -58,8 +79,6 @@ def load_predictor(model_path: Path, device: str = "cpu"):
     ONNX Runtime on the CPU."""
     model_path = Path(model_path)
     if model_path.suffix == ".onnx":
-        import json
-
         from ..learn.runtime import meta_problems
         from .quantize import OrtModel, require_onnxruntime
 
@@ -93,31 +112,209 @@ def load_predictor(model_path: Path, device: str = "cpu"):
     return run, meta
 
 
-def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None, device: str = "cpu") -> list[dict]:
-    run, meta = load_predictor(model_path, device)
-    logger.info(f"model {meta['arch']} ({model_path}): expects images at {meta['mm_per_px']:.4f} mm/px "
-        f"({meta['image_resolution']} px over {meta['mm_per_px'] * meta['image_resolution']:.0f} mm); "
-        f"network input {meta['input_size']} px = {network_scale(meta):.4f} mm/px")
+COLUMNS = ["image", *TARGETS, "error"]
+
+
+def describe_model(meta: dict, model_path: Path, mm_per_px: float | None) -> list[str]:
+    lines = [f"model {meta['arch']} ({model_path}): expects images at {meta['mm_per_px']:.4f} mm/px "
+             f"({meta['image_resolution']} px over {meta['mm_per_px'] * meta['image_resolution']:.0f} mm); "
+             f"network input {meta['input_size']} px = {network_scale(meta):.4f} mm/px"]
     if mm_per_px is None:
-        logger.info("no --mm-per-px given: each image is taken to cover the same field of view as the training images")
+        lines.append("no --mm-per-px given: each image is taken to cover the same field of view as the training images")
+    return lines
+
+
+def predict_one(run, meta: dict, path: Path, mm_per_px: float | None) -> dict:
+    """One image → its row; a bad image gives a row whose `error` names the file and the reason."""
+    try:
+        image, size_hw = read_photo(path, need=lambda h, w: target_size(h, w, meta, mm_per_px))
+        d = run(normalise(prepare(image, meta, mm_per_px, size_hw)))[0]
+        return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, "error": ""}
+    except PsdError as e:
+        error = str(e)
+    except MemoryError:
+        error = f"{path}: out of memory while predicting"
+    except Exception as e:  # one image must not stop the others: its row says what went wrong
+        error = f"{path}: {type(e).__name__}: {e}"
+    return {"image": str(path), **dict.fromkeys(TARGETS), "error": error}
+
+
+def predict_rows(run, meta: dict, files: list[Path], mm_per_px: float | None = None,
+                 done: dict[str, dict] | None = None) -> Iterator[tuple[dict, bool]]:
+    """(row, predicted now) per file, in order, one image in memory at a time; the rows of
+    `done` (keyed by image_key) are given back as they are, not predicted again."""
+    done = done or {}
+    for f in files:
+        old = done.get(image_key(f))
+        yield ({**old, "image": str(f)}, False) if old else (predict_one(run, meta, f, mm_per_px), True)
+
+
+def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None,
+                  device: str = "cpu") -> list[dict]:
+    run, meta = load_predictor(model_path, device)
+    for line in describe_model(meta, model_path, mm_per_px):
+        logger.info(line)
     files = expand_inputs(inputs)
     if not files:
         raise PsdError("no image files given")
-    rows = []
-    for f in files:
-        try:
-            d = run(normalise(prepare(read_png(f), meta, mm_per_px)))[0]
-            rows.append({"image": str(f), "d10_mm": float(d[0]), "d50_mm": float(d[1]), "d90_mm": float(d[2]), "error": ""})
-        except PsdError as e:
-            rows.append({"image": str(f), "d10_mm": None, "d50_mm": None, "d90_mm": None, "error": str(e)})
-    return rows
+    return [row for row, _ in predict_rows(run, meta, files, mm_per_px)]
 
 
-def write_predictions(rows: list[dict], out: Path) -> None:
-    if out.suffix.lower() == ".json":
-        write_json(out, rows)
-        return
-    with atomic_path(out) as tmp, open(tmp, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=["image", "d10_mm", "d50_mm", "d90_mm", "error"])
-        w.writeheader()
-        w.writerows(rows)
+# ---- streaming to --out: rows written as they come, the final file complete or absent ---------
+
+
+def image_key(path: str | Path) -> str:
+    """What identifies an image across runs (--resume): its absolute path."""
+    return os.path.abspath(path)
+
+
+def partial_path(out: Path) -> Path:
+    """Where rows go while a run is under way: <out>.partial.csv (CSV whatever --out's format).
+    It is renamed (CSV) or converted (JSON) to --out when every image is done; an interrupted
+    run leaves it behind with every row it finished, and --resume picks them up."""
+    return out.with_name(out.name + ".partial.csv")
+
+
+def _row_from_text(r: dict) -> dict | None:
+    """A CSV row read back (strings) → a row; None for a malformed one (e.g. the half-written
+    last line of a killed run)."""
+    try:
+        if not r.get("image") or None in r.values() or set(r) != set(COLUMNS):
+            return None
+        nums = {k: (float(r[k]) if r[k] not in ("", None) else None) for k in COLUMNS[1:4]}
+    except (TypeError, ValueError):
+        return None
+    if not r["error"] and None in nums.values():
+        return None
+    return {"image": r["image"], **nums, "error": r["error"] or ""}
+
+
+def read_rows(path: Path) -> list[dict]:
+    """The rows of a predictions file (.csv / .json) or a partial file; [] if there is none."""
+    if not path.is_file():
+        return []
+    try:
+        if path.suffix.lower() == ".json":
+            data = json.loads(path.read_text())
+            rows = data if isinstance(data, list) else []
+            return [r for r in rows if isinstance(r, dict) and set(r) == set(COLUMNS)]
+        with open(path, newline="") as f:
+            return [r for r in map(_row_from_text, csv.DictReader(f)) if r is not None]
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, csv.Error) as e:
+        raise PsdError(f"--resume: cannot read {path} ({e}); move it away or run without --resume") from None
+
+
+def done_rows(out: Path) -> dict[str, dict]:
+    """Images that already have a prediction in --out or its partial file (--resume); failed
+    ones are not counted as done, so they are tried again."""
+    rows = read_rows(out) + read_rows(partial_path(out))
+    return {image_key(r["image"]): r for r in rows if not r["error"]}
+
+
+class RowWriter:
+    """Rows appended to the partial file as they come: flushed at once (a killed run keeps
+    every finished row), fsync'ed at most every `sync_s` seconds and at the end."""
+
+    def __init__(self, out: Path, sync_s: float = 1.0):
+        self.out, self.partial, self.sync_s = out, partial_path(out), sync_s
+        self.partial.parent.mkdir(parents=True, exist_ok=True)
+        self.f = open(self.partial, "w", newline="")
+        self.w = csv.DictWriter(self.f, fieldnames=COLUMNS)
+        self.w.writeheader()
+        self.synced = time.monotonic()
+
+    def write(self, row: dict) -> None:
+        self.w.writerow(row)
+        self.f.flush()
+        if time.monotonic() - self.synced >= self.sync_s:
+            os.fsync(self.f.fileno())
+            self.synced = time.monotonic()
+
+    def close(self) -> None:
+        if not self.f.closed:
+            self.f.flush()
+            os.fsync(self.f.fileno())
+            self.f.close()
+
+    def finish(self) -> None:
+        """Every image done: the partial file becomes --out (whole, in one rename)."""
+        self.close()
+        if self.out.suffix.lower() == ".json":
+            write_json(self.out, read_rows(self.partial))
+            self.partial.unlink()
+        else:
+            os.replace(self.partial, self.out)
+
+
+def progress_line(done: int, total: int, failed: int, seconds: float, predicted: int) -> str:
+    """'predict: 120/300 images (1 failed), 35.2 images/s, ETA 0:00:05' — the rate counts the
+    images predicted in this run (not those a --resume skipped)."""
+    rate = predicted / seconds if seconds > 0 else 0.0
+    left = total - done
+    eta = "?" if rate <= 0 else str(datetime.timedelta(seconds=round(left / rate)))
+    fail = f" ({failed} failed)" if failed else ""
+    return f"predict: {done}/{total} images{fail}, {rate:.1f} images/s, ETA {eta}"
+
+
+class Progress:
+    """A progress line on a stream: rewritten in place on a terminal, a new line every
+    `interval` seconds otherwise (log files)."""
+
+    def __init__(self, total: int, stream=None, interval: float | None = None, enabled: bool = True):
+        self.total, self.stream, self.enabled = total, stream or sys.stderr, enabled
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.interval = interval if interval is not None else (0.5 if self.tty else 10.0)
+        self.t0 = self.shown = time.monotonic()
+        self.done = self.failed = self.predicted = 0
+
+    def update(self, failed: bool, predicted: bool) -> None:
+        self.done += 1
+        self.failed += failed
+        self.predicted += predicted
+        now = time.monotonic()
+        if now - self.shown >= self.interval or self.done == self.total:
+            self.shown = now
+            self.show(end="\n" if self.done == self.total or not self.tty else "")
+
+    def show(self, end: str) -> None:
+        if not self.enabled:
+            return
+        line = progress_line(self.done, self.total, self.failed, time.monotonic() - self.t0, self.predicted)
+        self.stream.write(("\r" + line if self.tty else line) + end)
+        self.stream.flush()
+
+
+def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = None, mm_per_px: float | None = None,
+                       device: str = "cpu", resume: bool = False, emit=None, progress_stream=None) -> tuple[int, int]:
+    """`psdfactory predict`: each image read, predicted and written (to `emit` and to `out`'s
+    partial file) before the next is read, so memory stays flat and an interrupted run keeps
+    what it did; `out` appears only when every image is done. → (images, failed)."""
+    run, meta = load_predictor(model_path, device)
+    for line in describe_model(meta, model_path, mm_per_px):
+        logger.info(line)
+    files = expand_inputs(inputs)
+    if not files:
+        raise PsdError("no image files given")
+    done = done_rows(out) if (resume and out is not None) else {}
+    if resume and out is None:
+        logger.warning("--resume needs --out: nothing to resume from")
+    elif resume:
+        n = sum(image_key(f) in done for f in files)
+        logger.info(f"--resume: {n} of {len(files)} images already have a prediction in {out} or {partial_path(out)}")
+    writer = RowWriter(out) if out is not None else None
+    progress = Progress(len(files), progress_stream, enabled=logger.isEnabledFor(logging.INFO))  # not with -q
+    failed = 0
+    try:
+        for row, predicted in predict_rows(run, meta, files, mm_per_px, done):
+            failed += bool(row["error"])
+            if writer is not None:
+                writer.write(row)
+            if emit is not None:
+                emit(row)
+            progress.update(bool(row["error"]), predicted)
+    finally:
+        if writer is not None:
+            writer.close()
+    if writer is not None:
+        writer.finish()
+    return len(files), failed
