@@ -12,7 +12,8 @@ from snakemake.exceptions import WorkflowError
 from psdfactory import PsdError
 from psdfactory import config as psd_config
 from psdfactory.manifest import shard_name
-from psdfactory.scene.stages import SCENE_FILES, STAGES
+from psdfactory.scene import stages as psd_stages
+from psdfactory.scene.stages import STAGES
 from psdfactory.seeding import scene_id, scene_index
 
 # Validated against the package's schema, src/psdfactory/config.schema.yaml (psd_config.SCHEMA): the
@@ -220,15 +221,12 @@ def missing_scene_files(ds):
     own stage rule (`render` for an image — in batch mode too) regenerate it, identical, and
     nothing else: no file is removed to force a rerun, so a dry run changes nothing. Only the
     main process looks (the jobs Snakemake starts re-parse this file and need no targets): one
-    stat per scene folder and file, once per invocation.
+    directory listing per scene folder, once per invocation.
     """
     if not workflow.is_main_process:
         return []
-    missing = []
-    for i in range(config["datasets"][ds]["n_scenes"]):
-        d = f"{RESULTS}/{ds}/scenes/{scene_id(ds, i)}"
-        if os.path.isdir(d):
-            missing += [f"{d}/{f}" for f in SCENE_FILES if not os.path.exists(f"{d}/{f}")]
+    ids = [scene_id(ds, i) for i in range(config["datasets"][ds]["n_scenes"])]
+    missing = psd_stages.missing_scene_files(f"{RESULTS}/{ds}/scenes", ids)
     for f in missing:
         print(f"psdfactory: {f} is missing; its stage will regenerate it", file=sys.stderr)
     return missing

@@ -71,3 +71,24 @@ def test_sample_refuses_a_folder_of_another_dataset(tmp_path):
     cfg = tiny_config()
     with pytest.raises(PsdError, match="does not belong to dataset 'tiny'"):
         run_scenes("sample", psd_config.sample_params(cfg, "tiny"), [tmp_path / "other-000000"])
+
+
+def test_missing_scene_files_lists_what_is_gone_from_existing_scenes_without_a_stat_per_file(tmp_path, monkeypatch):
+    from psdfactory.scene.stages import SCENE_FILES, missing_scene_files
+
+    root = tmp_path / "scenes"
+    for sid, gone in (("a-000000", ()), ("a-000001", ("image.png", "labels.json"))):
+        (root / sid).mkdir(parents=True)
+        for f in SCENE_FILES:
+            if f not in gone:
+                (root / sid / f).write_bytes(b"")
+    (root / "a-000003").write_text("a file where a scene folder would be")
+
+    def no_stat(*a, **k):
+        raise AssertionError("stat per file")
+
+    monkeypatch.setattr(os, "stat", no_stat)
+    monkeypatch.setattr(os.path, "exists", no_stat)
+    ids = ["a-000000", "a-000001", "a-000002", "a-000003"]
+    assert missing_scene_files(str(root), ids) == [f"{root}/a-000001/image.png", f"{root}/a-000001/labels.json"]
+    assert missing_scene_files(str(tmp_path / "none"), ids) == []

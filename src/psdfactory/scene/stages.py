@@ -252,6 +252,28 @@ STAGES = {
 SCENE_FILES = tuple(f for s in STAGES.values() for f in s.outputs)
 
 
+def missing_scene_files(scenes_root: str, scene_ids: list[str]) -> list[str]:
+    """Paths of the scene files missing from those scene folders that exist (deleted by hand).
+    One listing of the scenes folder and one of each scene folder that exists — not a stat per
+    file — so a 10,000-scene dataset is checked in a fraction of a second, changing nothing."""
+    import os
+
+    try:
+        present = set(os.listdir(scenes_root))
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    missing = []
+    for sid in scene_ids:
+        if sid in present:
+            d = f"{scenes_root}/{sid}"
+            try:
+                have = set(os.listdir(d))
+            except NotADirectoryError:
+                continue
+            missing += [f"{d}/{f}" for f in SCENE_FILES if f not in have]
+    return missing
+
+
 def record_path(scene_dir: Path, stage: str) -> Path:
     return Path(scene_dir) / "stages" / f"{stage}.json"
 
