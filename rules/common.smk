@@ -2,6 +2,7 @@
 # config slice of each stage (the rules' params, so rerun triggers fire only where an edit
 # changes a stage's inputs).
 
+import getpass
 import json
 import os
 import shutil
@@ -11,6 +12,7 @@ from snakemake.exceptions import WorkflowError
 
 from psdfactory import PsdError
 from psdfactory import config as psd_config
+from psdfactory import preflight as psd_preflight
 from psdfactory.manifest import shard_name
 from psdfactory.scene import stages as psd_stages
 from psdfactory.scene.stages import STAGES
@@ -31,6 +33,60 @@ if shutil.which("psdfactory") is None:
 RESULTS = config["results"].rstrip("/")  # every job that needs the results root gets it as --results
 DATASETS = list(config["datasets"])
 ARCHS = list(config["train"]["architectures"])
+
+
+# ---- fail fast: what would otherwise fail hours later (or hang) inside a job ------------------
+
+
+def profile_resources():
+    """The resources the profile and the command line set (default-resources, set-resources),
+    as their raw values: {"default-resources": {key: value}, "set-resources <rule>": {...}}."""
+    rs = workflow.resource_settings
+    raw = lambda values: {k: getattr(v, "raw", v) for k, v in values.items()}
+    found = {"default-resources": raw(rs.default_resources)} if rs.default_resources is not None else {}
+    for rule, values in (rs.overwrite_resources or {}).items():
+        found[f"set-resources {rule}"] = raw(values)
+    return found
+
+
+def require_blender(what):
+    """[] if Blender's Python is there; otherwise a WorkflowError saying how to install it."""
+    from psdfactory.scene.render.cycles import blender_python
+
+    try:
+        blender_python()
+    except PsdError as e:
+        raise WorkflowError(f"psdfactory: {what} — {e}") from None
+    return []
+
+
+def compare_inputs(wildcards):
+    """The training dataset's scene shards, for the report's backend comparison. Blender is
+    checked here, as the DAG is built, so only where the comparison is part of it (the default
+    target, not `scenes`): a missing Blender stops the run before any job starts."""
+    require_blender("show.compare_backends > 0 (the report compares tiny and cycles renders; 0 turns it off)")
+    return shard_files(config["train"]["dataset"], "scenes")
+
+
+def preflight():
+    """The results folder is writable; the SLURM profile's account and partitions are set and
+    known (sinfo/sacctmgr, where they answer); Blender is there for datasets rendered by
+    Cycles. Looks only, changes nothing: a dry run checks the same."""
+    try:
+        psd_preflight.check_results(RESULTS)
+        psd_preflight.check_slurm(profile_resources(), os.environ, getpass.getuser())
+    except PsdError as e:
+        raise WorkflowError(f"psdfactory: {e}") from None
+    cycles = [ds for ds in DATASETS if psd_config.dataset_render(config, ds)["backend"] == "cycles"]
+    if cycles:
+        plural = len(cycles) > 1
+        require_blender(f"dataset{'s' * plural} {', '.join(cycles)} render{'' if plural else 's'} with Cycles")
+
+
+# Once, in the process the user started: not in the jobs Snakemake starts (they re-parse this
+# file), nor in --lint (which, like Snakemake's own envvars check, does not look at the machine).
+if workflow.is_main_process and workflow.check_envvars:
+    preflight()
 
 
 wildcard_constraints:

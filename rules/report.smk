@@ -32,7 +32,7 @@ rule report:
 rule compare_backends:
     """A few scenes rendered by both backends from the same poses, for the report."""
     input:
-        lambda wildcards: shard_files(config["train"]["dataset"], "scenes"),
+        compare_inputs,  # checks Blender
     output:
         figure=report(
             f"{RESULTS}/report/backends/compare.png",

@@ -8,7 +8,7 @@ from pathlib import Path
 import psdfactory
 
 PKG = Path(psdfactory.__file__).parent
-CONTRACT = {"io", "config", "seeding", "manifest", "psd"}
+CONTRACT = {"io", "config", "seeding", "manifest", "psd", "preflight"}
 EDGES = {"cli", "report"}
 # what each part may import from the package (besides itself)
 MAY_IMPORT = {
