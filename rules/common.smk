@@ -22,8 +22,8 @@ from psdfactory.seeding import scene_id, scene_index
 # one schema file, which `psdfactory check-config` reads too.
 try:
     psd_config.validate(config)  # Snakemake's own JSON-schema validation, defaults filled in
-except PsdError as e:
-    raise WorkflowError(str(e)) from None
+except PsdError as e:  # the message names the key; say which file(s) it came from (or --config)
+    raise WorkflowError(f"{', '.join(map(str, workflow.configfiles)) or 'the config'}: {e}") from None
 
 # The jobs call the `psdfactory` CLI. When Snakemake runs from an unactivated virtualenv,
 # use the one installed beside the Python that runs Snakemake.

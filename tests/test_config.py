@@ -39,7 +39,7 @@ def test_bad_config_names_the_key(tmp_path, mutate, expect):
     path.write_text(yaml.safe_dump(cfg))
     with pytest.raises(PsdError, match="invalid config") as e:
         load_config(path)
-    assert expect in str(e.value)
+    assert expect in str(e.value) and str(e.value).startswith(f"{path}: invalid config")
 
 
 def test_unreadable_config(tmp_path):
@@ -89,5 +89,5 @@ def test_snakemake_refuses_bad_config_before_any_job(tmp_path):
     r = snakemake("-j1", "results/train/scenes/train-000000/spec.json", "--configfile", str(path), workdir=tmp_path)
     assert r.returncode != 0
     out = r.stdout + r.stderr
-    assert "datasets.train.size.sigma" in out and "lo <= hi" in out
+    assert "datasets.train.size.sigma" in out and "lo <= hi" in out and f"{path}: invalid config" in out
     assert not (tmp_path / "results").exists()

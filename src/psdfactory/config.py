@@ -92,7 +92,10 @@ def load_config(path: Path) -> dict:
         raise PsdError(f"{path} is not valid YAML: {e}") from None
     if not isinstance(config, dict):
         raise PsdError(f"{path} must hold a mapping of config keys")
-    return validate(config)
+    try:
+        return validate(config)
+    except PsdError as e:
+        raise PsdError(f"{path}: {e}") from None
 
 
 def _ordered(name: str, r: list, problems: list[str], strict: bool = False) -> None:
