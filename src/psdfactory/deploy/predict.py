@@ -149,14 +149,20 @@ def predict_rows(run, meta: dict, files: list[Path], mm_per_px: float | None = N
         yield ({**old, "image": str(f)}, False) if old else (predict_one(run, meta, f, mm_per_px), True)
 
 
-def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None,
-                  device: str = "cpu") -> list[dict]:
+def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, device: str):
+    """The model (its runner and meta, described in the log) and the image files to predict."""
     run, meta = load_predictor(model_path, device)
     for line in describe_model(meta, model_path, mm_per_px):
         logger.info(line)
     files = expand_inputs(inputs)
     if not files:
         raise PsdError("no image files given")
+    return run, meta, files
+
+
+def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None,
+                  device: str = "cpu") -> list[dict]:
+    run, meta, files = open_inputs(model_path, inputs, mm_per_px, device)
     return [row for row, _ in predict_rows(run, meta, files, mm_per_px)]
 
 
@@ -289,12 +295,7 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
     """`psdfactory predict`: each image read, predicted and written (to `emit` and to `out`'s
     partial file) before the next is read, so memory stays flat and an interrupted run keeps
     what it did; `out` appears only when every image is done. → (images, failed)."""
-    run, meta = load_predictor(model_path, device)
-    for line in describe_model(meta, model_path, mm_per_px):
-        logger.info(line)
-    files = expand_inputs(inputs)
-    if not files:
-        raise PsdError("no image files given")
+    run, meta, files = open_inputs(model_path, inputs, mm_per_px, device)
     done = done_rows(out) if (resume and out is not None) else {}
     if resume and out is None:
         logger.warning("--resume needs --out: nothing to resume from")
