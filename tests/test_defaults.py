@@ -16,6 +16,7 @@ import yaml
 
 from psdfactory import PsdError
 from psdfactory import config as psd_config
+from psdfactory.learn.instances import InstanceSettings
 from psdfactory.learn.train import TrainParams
 from psdfactory.scene.labels import LabelParams
 from psdfactory.scene.physics import PhysicsParams, QualityBounds
@@ -94,7 +95,9 @@ CASES = [
     (TrainParams, ("train",), (),
      {"arch": "one of train.architectures", "seed": "the top-level seed",
       "input_size": "train.input_size[arch] or config.default_input_size(arch)"},
-     {"architectures": "one training job per architecture", "input_size": "TrainParams.input_size (its arch's)"}),
+     {"architectures": "one training job per architecture", "input_size": "TrainParams.input_size (its arch's)",
+      "instances": "InstanceSettings, in the slice of arch 'instances' only"}),
+    (InstanceSettings, ("train", "instances"), (), {}, {}),
     (SampleParams, ("<dataset>",), ("size", "placement"),
      {"seed": "the top-level seed", "dataset": "the dataset's name", "index": "the scene's index"},
      {"n_scenes": "how many scenes", "shard_size": "the manifest", "split": "the manifest",
@@ -155,6 +158,7 @@ def test_the_validated_defaults_build_every_dataclass_with_the_schemas_values():
         RenderParams: RenderParams.from_dict(psd_config.compare_params(cfg)),  # the Cycles settings too
         LabelParams: LabelParams.from_dict(psd_config.label_params(cfg)),
         TrainParams: TrainParams.from_dict(psd_config.train_params(cfg, "resnet50")),
+        InstanceSettings: InstanceSettings.from_dict(psd_config.train_params(cfg, "instances")["instances"]),
         SampleParams: SampleParams.from_dict(psd_config.sample_params(cfg, "train", 3)),
     }
     for cls, path, flatten, _, elsewhere in CASES:

@@ -35,7 +35,8 @@ TINY = {
     "render": {"resolution": 48},
     "train": {
         "epochs": 1, "batch_size": 2, "precision": "fp32", "pretrained": "none",
-        "input_size": {"resnet50": 32, "inception_v3": 75, "efficientnet_b0": 32},
+        "architectures": ["resnet50", "inception_v3", "efficientnet_b0", "instances"],
+        "input_size": {"resnet50": 32, "inception_v3": 75, "efficientnet_b0": 32, "instances": 32},
     },
     "benchmark": {"batch_size": 2, "seconds": 0.05, "repeats": 1},
     "show": {"compare_backends": COMPARE},
@@ -78,8 +79,15 @@ def test_tiny_workflow_end_to_end(tmp_path):
         bench = json.loads((res / "bench" / f"{arch}.json").read_text())
         assert bench["cpu"]["forced_isa"] == "avx2" and not bench["cpu"]["native_bf16"]
         assert {"fp32", "channels_last", "fast"} <= set(bench["results"][0]["paths"])
+    # the instance estimator goes the same way, with its own figures
+    assert (res / "models" / "instances" / "model.pt").is_file()
+    metrics = json.loads((res / "eval" / "instances" / "metrics.json").read_text())
+    assert set(metrics["datasets"]) == {"train", "ood", "again"}
+    assert all("f1" in m["segmentation"] and "raw" in m for m in metrics["datasets"].values())
+    bench = json.loads((res / "bench" / "instances.json").read_text())
+    assert bench["results"][0]["paths"]["fast"]["name"] == "fp32 eager + watershed"
     html = (res / "report" / "report.html").read_text()
-    assert "Inference speed" in html and "efficientnet_b0" in html
+    assert "Inference speed" in html and "efficientnet_b0" in html and "Instance estimator" in html
     assert f"R² d50 on {'Cycles' if COMPARE else 'TinyRenderer'} (again) renders" in html
     if COMPARE:
         rows = json.loads((res / "report" / "backends" / "compare.json").read_text())["scenes"]

@@ -66,10 +66,10 @@ def cmd_check_config(a: argparse.Namespace) -> None:
 
 
 def cmd_train(a: argparse.Namespace) -> None:
-    from .learn.train import TrainParams, train
+    from .learn.train import train_from_params
 
     _threads(a.threads)
-    train(TrainParams.from_dict(_params(a.params)), Path(a.results), Path(a.out_dir))
+    train_from_params(_params(a.params), Path(a.results), Path(a.out_dir))
 
 
 def cmd_evaluate(a: argparse.Namespace) -> None:
@@ -132,7 +132,9 @@ def cmd_predict(a: argparse.Namespace) -> int:
     print(f"{'image':<50} " + " ".join(f"{t:>8}" for t in TARGETS))
     try:
         n, failed = stream_predictions(Path(a.model), a.images, out, a.mm_per_px, device=a.device, resume=a.resume,
-                                       emit=emit)
+                                       emit=emit, overlay_dir=Path(a.overlay) if a.overlay else None,
+                                       masks_dir=Path(a.masks) if a.masks else None,
+                                       particles_out=Path(a.particles) if a.particles else None)
     except KeyboardInterrupt:
         if out is not None:
             logger.error(f"psdfactory predict: interrupted; the rows done so far are in {partial_path(out)} "
@@ -258,6 +260,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip the images that already have a prediction in --out or its .partial.csv "
                         "(failed ones are retried)")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--overlay", metavar="DIR", help="instance models: write each image with its particles' outlines "
+                   "and sizes (mm) drawn on as DIR/<image stem>.png")
+    p.add_argument("--masks", metavar="DIR", help="instance models: write each image's instance mask as "
+                   "DIR/<image stem>.png (16-bit, 0 = background, k = one particle)")
+    p.add_argument("--particles", metavar="FILE", help="instance models: write every measured particle to this CSV "
+                   "(image, id, area_mm2, sieve_size_mm, volume_mm3, touches_edge)")
     p.add_argument("images", nargs="+", help="image files and/or folders of images")
     p.set_defaults(func=cmd_predict)
 

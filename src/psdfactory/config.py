@@ -21,7 +21,8 @@ MAX_PARTICLES_16BIT = 65534  # particles that a 16-bit mask.png holds (0 = table
 MAX_PARTICLES_CYCLES = 32766  # Blender's object index (pass_index) is a signed 16-bit value, at most 32767
 
 DESIGN_INPUT_SIZE = 224  # network input px of the torchvision models
-DEFAULT_INPUT_SIZE = {"inception_v3": 299}  # where the design size differs
+# where the design size differs; for the instance estimator: its training crops (it runs on whole images)
+DEFAULT_INPUT_SIZE = {"inception_v3": 299, "instances": 128}
 
 
 def default_input_size(arch: str) -> int:
@@ -351,5 +352,7 @@ def train_params(config: dict, arch: str) -> dict:
     out = {k: t[k] for k in keys}
     size = t["input_size"].get(arch, default_input_size(arch))
     out.update(arch=arch, seed=config["seed"], input_size=int(size))
+    if arch == "instances":  # only its own slice: editing train.instances retrains no CNN
+        out["instances"] = copy.deepcopy(t["instances"])
     return out
 

@@ -195,6 +195,72 @@ def benchmark_model(model: nn.Module, meta: dict, device: torch.device, results_
     return out
 
 
+INSTANCE_PATH = Candidate("fp32 eager + watershed", "torch", "fp32")
+
+
+def benchmark_instances(model: nn.Module, meta: dict, device: torch.device, results_root: Path | None,
+                        dataset: str | None, batch: int, seconds: float, repeats: int,
+                        caps: Capabilities | None = None) -> dict:
+    """The instance estimator end to end, in the layout of `benchmark_model`: one path, the
+    network in PyTorch fp32 plus the post-processing in Python (watershed, measurement,
+    read-out) per image, at batch 1 and batched, on the test split's images (random ones without
+    a dataset); and, apart, the network's and the post-processing's share of the time."""
+    from ..learn.evaluate import eval_rows
+    from ..learn.instances import InstanceEstimator, load_scenes, torch_maps_fn
+    from ..learn.metrics import regression_metrics
+    from ..psd import TARGETS
+
+    caps = caps or capability.detect()
+    size = meta["input_size"]
+    est = InstanceEstimator(torch_maps_fn(model.to(device), device), meta)
+    rows = eval_rows(results_root, dataset) if results_root is not None else None
+    if rows:
+        images, _ = load_scenes(results_root, rows)
+    else:
+        gen = torch.Generator().manual_seed(0)
+        images = torch.randint(0, 256, (max(batch, 1), 3, size, size), dtype=torch.uint8, generator=gen)
+    mm = float(meta["mm_per_px"])
+    out = {
+        "device": str(device) if device.type == "cpu" else torch.cuda.get_device_name(device),
+        "input_size": size,
+        "params_m": count_parameters(model) / 1e6,
+        "gflops": gflops(model.float().to(device), size),
+        "threads": torch.get_num_threads(),
+        "cpu": caps.as_dict(),
+        "max_r2_change": MAX_R2_CHANGE,
+        "paths": {},
+        "skipped": {"other paths": "the instance estimator is timed as fp32 eager + watershed only (its "
+                                   "post-processing runs in Python; the exported ONNX network is not benchmarked)"},
+    }
+    reps = -(-batch // len(images))
+    pool = images.repeat(reps, 1, 1, 1)
+    res = {"name": INSTANCE_PATH.name, **asdict(INSTANCE_PATH)}
+    for b in (1, batch):
+        x = pool[:b]
+        r = throughput(lambda x=x: est.analyse(x, mm), b, seconds, repeats)
+        res["batch1" if b == 1 else "batched"] = r
+        logger.info(f"  {INSTANCE_PATH.name:<32} batch {b:>3}: {r['images_per_s']:7.1f} images/s, "
+                    f"{r['ms_per_image']:7.2f} ms/image")
+    x = pool[:batch]
+    net = throughput(lambda: est.maps(x), batch, seconds, repeats)
+    maps = est.maps(x)
+    post = throughput(lambda: [est.analyse_maps(mp, mm) for mp in maps], batch, seconds, repeats)
+    out["stages"] = {"network_ms_per_image": net["ms_per_image"], "postprocess_ms_per_image": post["ms_per_image"]}
+    logger.info(f"  of which network {net['ms_per_image']:.1f} ms/image, watershed + measurement + read-out "
+                f"{post['ms_per_image']:.1f} ms/image")
+    if rows:
+        p = np.stack([r.calibrated for i in range(0, len(images), batch)
+                      for r in est.analyse(images[i : i + batch], mm)])
+        y = np.array([[r[k] for k in TARGETS] for r in rows], float)
+        res["accuracy"] = regression_metrics(y, p)
+    res["r2_change"] = 0.0 if rows else None
+    out["paths"]["fp32"] = res
+    out["fast_key"] = "fp32"
+    out["paths"]["fast"] = dict(res)
+    out["speedup_batched"] = out["speedup_batch1"] = 1.0
+    return out
+
+
 def benchmark(model_path: Path, results_root: Path, dataset: str, batch: int, seconds: float, repeats: int,
               device: str = "auto") -> dict:
     """Speed and accuracy of every path on this machine (CPU, and the GPU when present)."""
@@ -209,8 +275,8 @@ def benchmark(model_path: Path, results_root: Path, dataset: str, batch: int, se
     result = {"arch": meta["arch"], "weights": meta["weights"], "cpu": caps.as_dict(), "results": []}
     for dev in devices:
         logger.info(f"{meta['arch']} on {dev} at {meta['input_size']} px:")
-        result["results"].append(benchmark_model(model, meta, dev, results_root, dataset, batch, seconds, repeats,
-                                                 caps))
+        bench = benchmark_instances if meta["arch"] == "instances" else benchmark_model
+        result["results"].append(bench(model, meta, dev, results_root, dataset, batch, seconds, repeats, caps))
     fast = result["results"][-1]["paths"]
     result["r2_change"] = fast["fast"]["r2_change"]
     logger.info(f"R² overall: fp32 {fast['fp32']['accuracy']['overall']['r2']:.4f}, fast "

@@ -30,6 +30,11 @@ def export(model_path: Path, out_dir: Path, int8_results: Path | None = None, da
     max_r2_change = MAX_R2_CHANGE if max_r2_change is None else max_r2_change
     model, meta = load_model(model_path, "cpu")
     model = model.float().eval()
+    if meta["arch"] == "instances":
+        if int8_results is not None:
+            raise PsdError("int8 export is not available for the instance estimator (its maps feed a watershed; "
+                           "only the fp32 network is exported)")
+        return export_instances(model, meta, out_dir)
     size = meta["input_size"]
     x = torch.randn(2, 3, size, size)
     with torch.inference_mode():
@@ -99,3 +104,47 @@ def export_int8(model, meta: dict, fp32_onnx: Path, out: Path, results_root: Pat
     tmp_out.replace(out)
     logger.info(f"int8: {out} (R² {r2_32:.4f} → {r2_8:.4f} on {len(y)} test scenes; calibrated on {len(calib)} images)")
     return info
+
+
+def export_instances(model, meta: dict, out_dir: Path) -> dict:
+    """The instance estimator's network as ONNX — images (N×3×H×W, any H and W) in, its maps
+    (N×3×H×W: foreground, boundary, distance, each in [0, 1]) out — checked against PyTorch at
+    two sizes, with meta.json (scale, post-processing settings, read-out). The watershed,
+    measurement and read-out stay in Python: `psdfactory predict --model model.onnx` runs them."""
+    import onnxruntime as ort
+
+    from ..learn.instances import InstanceMaps
+
+    wrapped = InstanceMaps(model.float().eval()).eval()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    onnx_path = out_dir / "model.onnx"
+    size = int(meta["input_size"])
+    with atomic_path(onnx_path) as tmp:
+        torch.onnx.export(wrapped, (torch.zeros(1, 3, size, size),), str(tmp), input_names=["images"],
+                          output_names=["maps"],
+                          dynamic_axes={"images": {0: "batch", 2: "height", 3: "width"},
+                                        "maps": {0: "batch", 2: "height", 3: "width"}}, dynamo=False)
+    sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    diffs = []
+    for shape in ((2, 3, size, size), (1, 3, size // 2 + 3, size - 5)):  # the export's size and an odd one
+        x = torch.randn(*shape, generator=torch.Generator().manual_seed(0))
+        with torch.inference_mode():
+            ref = wrapped(x).numpy()
+        got = sess.run(None, {"images": x.numpy()})[0]
+        if got.shape != ref.shape:
+            raise PsdError(f"onnx export gives maps of shape {got.shape} for input {tuple(shape)}, PyTorch {ref.shape}")
+        diffs.append(float(np.abs(got - ref).max()))
+    diff = max(diffs)
+    if not diff < 1e-3:
+        raise PsdError(f"onnx export differs from PyTorch by {diff:.2e} (tolerance 1e-3 on maps in [0, 1])")
+    logger.info(f"onnx: {onnx_path} (max |difference| vs PyTorch {diff:.1e} on the maps; "
+                "post-processing stays in Python)")
+    report = {"arch": meta["arch"], "input_size": size, "mm_per_px": meta["mm_per_px"],
+              "input": "float32 Nx3xHxW (any H, W), RGB/255 normalised with ImageNet mean/std, at mm_per_px",
+              "output": "float32 Nx3xHxW maps in [0, 1]: foreground, boundary, normalised distance; post-process with "
+                        "psdfactory.learn.instances.InstanceEstimator (watershed, measurement, read-out in meta.json)",
+              "onnx": {"path": str(onnx_path), "max_abs_diff": diff},
+              "torchscript": None, "not_exported": "TorchScript and int8: not for the instance estimator"}
+    write_json(out_dir / "export.json", report)
+    write_json(out_dir / "meta.json", meta)
+    return report

@@ -76,7 +76,8 @@ def prepare(image: np.ndarray, meta: dict, mm_per_px: float | None, size_hw: tup
 def load_predictor(model_path: Path, device: str = "cpu"):
     """→ (function: normalised float N×3×S×S tensor → N×3 mm array, meta). A `model.pt` runs in
     PyTorch; an exported `.onnx` (fp32 or int8, with the export's meta.json beside it) runs in
-    ONNX Runtime on the CPU."""
+    ONNX Runtime on the CPU. For an instance model (arch 'instances') the function returns its
+    N×3×H×W maps (foreground, boundary, distance) instead: see `InstanceOutputs`."""
     model_path = Path(model_path)
     if model_path.suffix == ".onnx":
         from ..learn.runtime import meta_problems
@@ -104,6 +105,10 @@ def load_predictor(model_path: Path, device: str = "cpu"):
 
     dev = pick_device(device)
     model, meta = load_model(model_path, dev)
+    if meta["arch"] == "instances":
+        from ..learn.instances import torch_maps_fn
+
+        return torch_maps_fn(model, dev), meta
 
     def run(x: torch.Tensor) -> np.ndarray:
         with torch.inference_mode():
@@ -124,10 +129,15 @@ def describe_model(meta: dict, model_path: Path, mm_per_px: float | None) -> lis
     return lines
 
 
-def predict_one(run, meta: dict, path: Path, mm_per_px: float | None) -> dict:
-    """One image → its row; a bad image gives a row whose `error` names the file and the reason."""
+def predict_one(run, meta: dict, path: Path, mm_per_px: float | None, instance: InstanceOutputs | None = None) -> dict:
+    """One image → its row; a bad image gives a row whose `error` names the file and the reason.
+    With an instance model (`instance`), the calibrated d-values of the particles it measured,
+    and its overlay, mask and particle rows written."""
     try:
         image, size_hw = read_photo(path, need=lambda h, w: target_size(h, w, meta, mm_per_px))
+        if instance is not None:
+            d = instance.predict(path, image, size_hw, prepare(image, meta, mm_per_px, size_hw))
+            return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, "error": ""}
         d = run(normalise(prepare(image, meta, mm_per_px, size_hw)))[0]
         return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, "error": ""}
     except PsdError as e:
@@ -140,18 +150,25 @@ def predict_one(run, meta: dict, path: Path, mm_per_px: float | None) -> dict:
 
 
 def predict_rows(run, meta: dict, files: list[Path], mm_per_px: float | None = None,
-                 done: dict[str, dict] | None = None) -> Iterator[tuple[dict, bool]]:
+                 done: dict[str, dict] | None = None,
+                 instance: InstanceOutputs | None = None) -> Iterator[tuple[dict, bool]]:
     """(row, predicted now) per file, in order, one image in memory at a time; the rows of
     `done` (keyed by image_key) are given back as they are, not predicted again."""
     done = done or {}
+    if instance is not None:
+        instance.name_outputs(files)
     for f in files:
         old = done.get(image_key(f))
-        yield ({**old, "image": str(f)}, False) if old else (predict_one(run, meta, f, mm_per_px), True)
+        yield ({**old, "image": str(f)}, False) if old else (predict_one(run, meta, f, mm_per_px, instance), True)
 
 
-def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, device: str):
-    """The model (its runner and meta, described in the log) and the image files to predict."""
+def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, device: str, outputs: dict | None = None):
+    """The model (its runner and meta, described in the log) and the image files to predict.
+    `outputs`: an instance model's --overlay / --masks / --particles (refused for the others)."""
     run, meta = load_predictor(model_path, device)
+    if meta["arch"] != "instances" and any((outputs or {}).values()):
+        raise PsdError(f"--overlay, --masks and --particles need an instance model (arch 'instances'); {meta['arch']} "
+                       "reads d10/d50/d90 straight off the image and measures no particle")
     for line in describe_model(meta, model_path, mm_per_px):
         logger.info(line)
     files = expand_inputs(inputs)
@@ -160,10 +177,18 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
     return run, meta, files
 
 
-def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None,
-                  device: str = "cpu") -> list[dict]:
-    run, meta, files = open_inputs(model_path, inputs, mm_per_px, device)
-    return [row for row, _ in predict_rows(run, meta, files, mm_per_px)]
+def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None, device: str = "cpu",
+                  overlay_dir: Path | None = None, masks_dir: Path | None = None,
+                  particles_out: Path | None = None) -> list[dict]:
+    """One row per image. An instance model can also write each image's overlay and instance
+    mask and a table of every measured particle (`InstanceOutputs`)."""
+    outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
+    run, meta, files = open_inputs(model_path, inputs, mm_per_px, device, outputs)
+    instance = InstanceOutputs(run, meta, **outputs) if meta["arch"] == "instances" else None
+    rows = [row for row, _ in predict_rows(run, meta, files, mm_per_px, instance=instance)]
+    if instance is not None:
+        instance.finish()
+    return rows
 
 
 # ---- streaming to --out: rows written as they come, the final file complete or absent ---------
@@ -291,12 +316,17 @@ class Progress:
 
 
 def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = None, mm_per_px: float | None = None,
-                       device: str = "cpu", resume: bool = False, emit=None, progress_stream=None) -> tuple[int, int]:
+                       device: str = "cpu", resume: bool = False, emit=None, progress_stream=None,
+                       overlay_dir: Path | None = None, masks_dir: Path | None = None,
+                       particles_out: Path | None = None) -> tuple[int, int]:
     """`psdfactory predict`: each image read, predicted and written (to `emit` and to `out`'s
     partial file) before the next is read, so memory stays flat and an interrupted run keeps
-    what it did; `out` appears only when every image is done. → (images, failed)."""
-    run, meta, files = open_inputs(model_path, inputs, mm_per_px, device)
+    what it did; `out` appears only when every image is done. → (images, failed). An instance
+    model can also write overlays, masks and the particle table (`InstanceOutputs`)."""
+    outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
+    run, meta, files = open_inputs(model_path, inputs, mm_per_px, device, outputs)
     done = done_rows(out) if (resume and out is not None) else {}
+    instance = InstanceOutputs(run, meta, **outputs, keep=done) if meta["arch"] == "instances" else None
     if resume and out is None:
         logger.warning("--resume needs --out: nothing to resume from")
     elif resume:
@@ -306,7 +336,7 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
     progress = Progress(len(files), progress_stream, enabled=logger.isEnabledFor(logging.INFO))  # not with -q
     failed = 0
     try:
-        for row, predicted in predict_rows(run, meta, files, mm_per_px, done):
+        for row, predicted in predict_rows(run, meta, files, mm_per_px, done, instance):
             failed += bool(row["error"])
             if writer is not None:
                 writer.write(row)
@@ -318,4 +348,98 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
             writer.close()
     if writer is not None:
         writer.finish()
+    if instance is not None:
+        instance.finish()
     return len(files), failed
+
+
+# ---- an instance model's own outputs ---------------------------------------------------------
+
+PARTICLE_COLUMNS = ["image", "id", "area_mm2", "sieve_size_mm", "volume_mm3", "touches_edge"]
+
+
+class InstanceOutputs:
+    """Prediction with an instance model (arch 'instances'), and the files it can write per
+    image: the overlay (`<stem>.png`: outlines and sieve sizes in mm drawn on the image), the
+    instance mask (`<stem>.png`, 16-bit, 0 = background, k = one particle, at the image's own
+    size) and the rows of the particle table (written to `<particles>.partial.csv` as they come,
+    renamed when every image is done; with --resume the rows of the images skipped are carried
+    over from the previous table). Stems shared by several inputs (e.g. a results folder's
+    `image.png`s) get their folder's name in front: `<folder>_<stem>`."""
+
+    def __init__(self, maps_fn, meta: dict, overlay_dir: Path | None = None, masks_dir: Path | None = None,
+                 particles_out: Path | None = None, keep: dict[str, dict] | None = None):
+        from ..learn.instances import InstanceEstimator
+
+        self.est = InstanceEstimator(maps_fn, meta)
+        self.meta = meta
+        self.overlay_dir = Path(overlay_dir) if overlay_dir else None
+        self.masks_dir = Path(masks_dir) if masks_dir else None
+        self.particles_out = Path(particles_out) if particles_out else None
+        self.names: dict[Path, str] = {}
+        self.writer = None
+        if self.particles_out is not None:
+            old = self._old_particles(set(keep or {}))
+            self.partial = partial_path(self.particles_out)
+            self.partial.parent.mkdir(parents=True, exist_ok=True)
+            self.file = open(self.partial, "w", newline="")
+            self.writer = csv.DictWriter(self.file, fieldnames=PARTICLE_COLUMNS)
+            self.writer.writeheader()
+            self.writer.writerows(old)
+            self.n_particles = len(old)
+
+    def _old_particles(self, keys: set[str]) -> list[dict]:
+        """The particle rows of the images a --resume skips, from the previous table or its partial file."""
+        rows: list[dict] = []
+        for path in (self.particles_out, partial_path(self.particles_out)):
+            if keys and path.is_file():
+                with open(path, newline="") as f:
+                    rows += [r for r in csv.DictReader(f) if set(r) == set(PARTICLE_COLUMNS)
+                             and image_key(r["image"]) in keys]
+        return list({(image_key(r["image"]), r["id"]): r for r in rows}.values())
+
+    def name_outputs(self, files: list[Path]) -> None:
+        from collections import Counter
+
+        stems = Counter(f.stem for f in files)
+        taken: set[str] = set()
+        for f in files:
+            name = f.stem if stems[f.stem] == 1 else f"{f.parent.name}_{f.stem}"
+            base, k = name, 2
+            while name in taken:
+                name, k = f"{base}-{k}", k + 1
+            taken.add(name)
+            self.names[f] = name
+
+    def predict(self, path: Path, image: np.ndarray, size_hw: tuple[int, int], x: torch.Tensor) -> np.ndarray:
+        """The calibrated d10/d50/d90 of one image (`x`: it at the network's scale), and its files."""
+        from ..io import write_png
+        from ..learn.instances import resize_mask
+        from ..learn.particles import draw_overlay
+
+        res = self.est.analyse(x, network_scale(self.meta))[0]
+        m = res.measurements
+        if self.masks_dir:  # at the size of the image file
+            name = self.names.get(path, path.stem)
+            write_png(self.masks_dir / f"{name}.png", resize_mask(res.mask, size_hw).astype(np.uint16))
+        if self.overlay_dir:  # on the image as decoded
+            over = draw_overlay(image, resize_mask(res.mask, image.shape[:2]), res.sizes_mm, m.ids, min_text_area_px=40)
+            write_png(self.overlay_dir / f"{self.names.get(path, path.stem)}.png", over)
+        if self.writer is not None:
+            self.writer.writerows({"image": str(path), "id": int(m.ids[i]), "area_mm2": float(m.area_mm2[i]),
+                                   "sieve_size_mm": float(res.sizes_mm[i]), "volume_mm3": float(m.volume_mm3[i]),
+                                   "touches_edge": bool(m.touches_edge[i])} for i in range(len(m)))
+            self.file.flush()
+            self.n_particles += len(m)
+        raw = ", ".join(f"{v:.3f}" for v in res.raw)
+        logger.debug(f"{path}: {len(m)} particles ({int((~m.touches_edge).sum())} off the edge), raw d10/d50/d90 {raw} mm")
+        return res.calibrated
+
+    def finish(self) -> None:
+        if self.writer is not None and not self.file.closed:
+            self.file.close()
+            os.replace(self.partial, self.particles_out)
+            logger.info(f"wrote {self.particles_out}: {self.n_particles} particles")
+        for what, d in (("overlays", self.overlay_dir), ("instance masks", self.masks_dir)):
+            if d is not None:
+                logger.info(f"wrote {what} to {d}/")

@@ -168,8 +168,14 @@ def meta_problems(meta: object) -> list[str]:
     keys predict and evaluate rely on, their types and sane ranges. Empty when it is fine."""
     if not isinstance(meta, dict):
         return ["it must hold a JSON object / dict"]
-    return [f"{k} is missing or not valid (got {str(meta.get(k))[:80]!r})" for k, ok in META_CHECKS.items()
-            if not ok(meta.get(k))]
+    instances = meta.get("arch") == "instances"  # the instance estimator: maps, post-processing, read-out
+    problems = [f"{k} is missing or not valid (got {str(meta.get(k))[:80]!r})" for k, ok in META_CHECKS.items()
+                if not ok(meta.get(k)) and not (instances and k == "target_stats")]
+    if instances:
+        from .instances import readout_problems
+
+        problems += readout_problems(meta)
+    return problems
 
 
 def load_model(path: Path, device: torch.device | str = "cpu") -> tuple[nn.Module, dict]:
@@ -180,8 +186,13 @@ def load_model(path: Path, device: torch.device | str = "cpu") -> tuple[nn.Modul
         raise PsdError(f"{path} is not a psdfactory model: its meta is refused: " + "; ".join(problems))
     try:
         meta = ckpt["meta"]
-        stats = TargetStats(**meta["target_stats"])
-        model, _ = build_model(meta["arch"], stats, "none", size=meta["input_size"])
+        if meta["arch"] == "instances":  # the instance estimator's segmentation network
+            from .instances import net_from_meta
+
+            model = net_from_meta(meta)
+        else:
+            stats = TargetStats(**meta["target_stats"])
+            model, _ = build_model(meta["arch"], stats, "none", size=meta["input_size"])
         model.load_state_dict(ckpt["state_dict"])
     except PsdError:
         raise

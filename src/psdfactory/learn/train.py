@@ -70,6 +70,15 @@ class TrainParams:
         return cls(**config_fields(cls, d, "train"))
 
 
+def train_from_params(params: dict, results_root: Path, out_dir: Path) -> dict:
+    """`train` from a `config.train_params` slice: the instance estimator's slice carries its own
+    `instances` settings beside the `train` ones (the CNNs' slices do not: editing them retrains
+    no CNN)."""
+    params = dict(params)
+    instances = params.pop("instances", None)
+    return train(TrainParams.from_dict(params), results_root, out_dir, instances)
+
+
 def fingerprint(params: TrainParams, rows: list[dict]) -> str:
     """What a resumable checkpoint must match: the settings and the exact training scenes."""
     ids = [(r["scene_id"], r["split"], *(r[t] for t in TARGETS)) for r in rows]
@@ -130,7 +139,16 @@ def resume_state(fp: str, epoch: int, model, opt, sched, gen: torch.Generator, l
     }
 
 
-def train(params: TrainParams, results_root: Path, out_dir: Path) -> dict:
+def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dict | None = None) -> dict:
+    """Train `params.arch`; for the instance estimator (arch 'instances') `instances` is the
+    config's `train.instances` slice (see `train_from_params`)."""
+    if params.arch == "instances":  # segmentation network + measurement + read-out
+        from .instance_training import train_instances
+        from .instances import InstanceSettings
+
+        if instances is None:
+            raise PsdError("arch 'instances' needs the train.instances settings (config.train_params gives them)")
+        return train_instances(params, InstanceSettings.from_dict(instances), results_root, out_dir)
     from tqdm import tqdm
 
     torch.manual_seed(params.seed)

@@ -1,0 +1,251 @@
+"""Training of the instance estimator (architecture ``instances``; `learn.instances` holds the
+network, targets, loss, post-processing and read-out): random crops of the training split with
+flips / 90° rotations on image and targets and photometric jitter on the image, model selection by
+validation loss; then the post-processing picked on the validation masks and the read-out fitted
+on the training split's predicted instances, all stored in the model file's meta."""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .. import PsdError, __version__
+from ..io import atomic_path, read_png
+from ..psd import NAMES, TARGETS
+from .instances import (
+    ARCH,
+    DECODER,
+    DEFAULT_POSTPROCESS,
+    FULL_RES,
+    POSTPROCESS_GRID,
+    TRUNK,
+    InstanceEstimator,
+    InstanceSettings,
+    all_maps,
+    boundary_weight,
+    build_instance_net,
+    fit_readout,
+    instance_loss,
+    load_scenes,
+    postprocess,
+    random_crops,
+    torch_maps_fn,
+)
+from .particles import match_instances
+
+logger = logging.getLogger(__name__)
+
+
+def _scaled_rows(rows):
+    return [float(r["mm_per_px"]) for r in rows]
+
+
+
+def _val_loss(model, images, targets, device, precision, pw: float, batch: int = 4) -> float:
+    from .data import normalise
+    from .runtime import autocast
+
+    model.eval()
+    total = 0.0
+    with torch.inference_mode():
+        for i in range(0, len(images), batch):
+            x = normalise(images[i : i + batch].to(device))
+            with autocast(device, precision):
+                out = model(x)
+            total += float(instance_loss(out, targets[i : i + batch].to(device), pw)[0]) * len(x)
+    return total / max(len(images), 1)
+
+
+def pick_postprocess(maps: np.ndarray, masks: list[np.ndarray], grid: dict = POSTPROCESS_GRID) -> tuple[dict, float]:
+    """The post-processing settings (from `grid` over DEFAULT_POSTPROCESS) with the best pooled F1
+    at IoU 0.5 against the true masks."""
+    import itertools
+
+    best, best_f1 = dict(DEFAULT_POSTPROCESS), -1.0
+    keys = list(grid)
+    for values in itertools.product(*(grid[k] for k in keys)):
+        s = {**DEFAULT_POSTPROCESS, **dict(zip(keys, values, strict=True))}
+        tp = n = 0
+        for mp, true in zip(maps, masks, strict=True):
+            res = match_instances(postprocess(mp, s), true)
+            tp += res.n_matched
+            n += res.n_pred + res.n_true
+        f1 = 2 * tp / n if n else 0.0
+        if f1 > best_f1:
+            best, best_f1 = s, f1
+    logger.info(f"post-processing picked on the validation masks: {best} (F1 at IoU 0.5: {best_f1:.3f})")
+    return best, best_f1
+
+
+def train_instances(params, settings: InstanceSettings, results_root: Path, out_dir: Path) -> dict:
+    """Train the instance estimator (`params`: learn.train.TrainParams with arch 'instances') on
+    a dataset's train split, select by validation loss, pick the post-processing on the
+    validation masks, fit the read-out on the training split; write model.pt and history.csv."""
+    from tqdm import tqdm
+
+    from .augment import photometric
+    from .data import manifest_rows, normalise
+    from .data import targets as label_targets
+    from .models import count_parameters
+    from .runtime import autocast, pick_device, pick_precision, save_model
+
+    torch.manual_seed(params.seed)
+    np.random.seed(params.seed % 2**32)
+    device = pick_device(params.device)
+    precision = pick_precision(params.precision, device)
+    if precision == "bf16" and device.type == "cpu" and params.precision == "auto":
+        precision = "fp32"  # not timed here: the small convolutions gain little from emulated or native bf16
+    rows = manifest_rows(results_root, params.dataset)
+    train_rows = [r for r in rows if r["split"] == "train"]
+    val_rows = [r for r in rows if r["split"] == "val"]
+    if not train_rows or not val_rows:
+        raise PsdError(f"dataset {params.dataset!r} has {len(train_rows)} train and {len(val_rows)} val scenes; "
+                       "training needs both (datasets.<name>.split and n_scenes)")
+    t_load = time.perf_counter()
+    x_train, t_train = load_scenes(results_root, train_rows)
+    x_val, t_val = load_scenes(results_root, val_rows)
+    crop = min(int(params.input_size), *x_train.shape[-2:])
+    pw = boundary_weight(t_train)
+    model, weights_used = build_instance_net(params.pretrained)
+    model = model.to(device)
+    n_params = count_parameters(model)
+    logger.info(f"training {ARCH} ({TRUNK} trunk + U-Net decoder, {n_params / 1e6:.2f} M parameters, weights: "
+        f"{weights_used}) on {len(train_rows)} train / {len(val_rows)} val scenes of {params.dataset!r}: "
+        f"{settings.crops_per_image} random "
+        f"{crop}-px crops per image and epoch, {device} {precision}, {params.epochs} epochs, lr {settings.lr}, "
+        f"boundary weight {pw:.1f} (targets made in {time.perf_counter() - t_load:.1f} s)")
+    opt = torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=params.weight_decay)
+    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, mode="min", factor=params.lr_factor,
+                                                       patience=params.lr_patience)
+    gen = torch.Generator().manual_seed(params.seed)
+    history: list[dict] = []
+    best, best_epoch, best_state, stale = math.inf, -1, None, 0
+    stop_reason = "max epochs"
+    t_train0 = time.perf_counter()
+    for epoch in range(params.epochs):
+        t0 = time.perf_counter()
+        model.train()
+        order = torch.cat([torch.randperm(len(x_train), generator=gen) for _ in range(settings.crops_per_image)])
+        total, n = 0.0, 0
+        with tqdm(total=len(order), desc=f"{ARCH} epoch {epoch + 1}/{params.epochs}", unit="crop", mininterval=2.0,
+                  disable=not logger.isEnabledFor(logging.INFO)) as bar:
+            for b in range(0, len(order), params.batch_size):
+                x, t = random_crops(x_train, t_train, order[b : b + params.batch_size], crop, gen, params.augment)
+                if settings.photometric > 0:
+                    x = photometric(x, gen, settings.photometric)
+                x = normalise(x.to(device))
+                with autocast(device, precision):
+                    out = model(x)
+                loss, _ = instance_loss(out, t.to(device), pw)
+                if not torch.isfinite(loss):
+                    raise PsdError("training diverged (non-finite loss); lower train.instances.lr")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                total += float(loss.detach()) * len(x)
+                n += len(x)
+                bar.update(len(x))
+                bar.set_postfix(loss=f"{total / n:.4f}")
+        train_loss = total / max(n, 1)
+        val_loss = _val_loss(model, x_val, t_val, device, precision, pw)
+        sched.step(val_loss)
+        lr = opt.param_groups[0]["lr"]
+        row = {"epoch": epoch + 1, "train_loss": train_loss, "val_loss": val_loss, "val_mae_mm": float("nan"), "lr": lr,
+               "seconds": time.perf_counter() - t0}
+        history.append(row)
+        improved = val_loss < best
+        if improved:
+            best, best_epoch, stale = val_loss, epoch + 1, 0
+            best_state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+        else:
+            stale += 1
+        logger.info(f"epoch {epoch + 1}: train loss {train_loss:.4f}, val loss {val_loss:.4f}, lr {lr:.2e}, "
+            f"{row['seconds']:.0f} s{' (best)' if improved else ''}")
+        write_history(history, out_dir / "history.csv")
+        if stale >= params.early_stopping_patience:
+            stop_reason = f"early stopping (no better val loss for {stale} epochs)"
+            break
+    train_seconds = time.perf_counter() - t_train0
+    if best_state is None:
+        raise PsdError("no epoch was trained (train.epochs must be ≥ 1)")
+    model.load_state_dict(best_state)
+    model.eval()
+
+    # calibration: post-processing on the validation masks, the read-out on the training split
+    t0 = time.perf_counter()
+    meta = {"arch": ARCH, "weights": weights_used, "sieve_method": settings.sieve_method, "readout": None,
+            "postprocess": dict(DEFAULT_POSTPROCESS)}
+    est = InstanceEstimator(torch_maps_fn(model, device, precision), meta)
+    val_maps = all_maps(est, x_val)
+    val_masks = [read_png(Path(results_root) / r["mask_path"]) for r in val_rows]
+    post, val_f1 = pick_postprocess(val_maps, val_masks)
+    est.post = post
+    train_maps = all_maps(est, x_train)
+    x_stats = np.stack([est.analyse_maps(mp, s).stats
+                        for mp, s in zip(train_maps, _scaled_rows(train_rows), strict=True)])
+    readout = fit_readout(x_stats, label_targets(train_rows).numpy())
+    est.readout = readout
+    val_res = [est.analyse_maps(mp, s) for mp, s in zip(val_maps, _scaled_rows(val_rows), strict=True)]
+    y_val = label_targets(val_rows).numpy()
+    from .metrics import regression_metrics
+
+    val_cal = regression_metrics(y_val, np.stack([r.calibrated for r in val_res]))
+    val_raw = regression_metrics(y_val, np.nan_to_num(np.stack([r.raw for r in val_res])))
+    history[-1]["val_mae_mm"] = val_cal["overall"]["mae"]
+    write_history(history, out_dir / "history.csv")
+    r2s = {k: " / ".join(f"{m[n]['r2']:.3f}" for n in NAMES) for k, m in (("cal", val_cal), ("raw", val_raw))}
+    logger.info(f"read-out fitted on {len(train_rows)} training scenes (ridge {readout['alpha']:g}); validation R² "
+        f"calibrated {r2s['cal']}, raw {r2s['raw']} ({time.perf_counter() - t0:.0f} s)")
+
+    mm = float(np.median([r["mm_per_px"] for r in train_rows]))
+    res = int(np.median([r["resolution"] for r in train_rows]))
+    summary = {
+        "arch": ARCH,
+        "trunk": TRUNK,
+        "decoder": list(DECODER),
+        "full_res_channels": FULL_RES,
+        "input_size": res,  # inference runs on whole images at the training images' scale
+        "crop_size": crop,
+        "image_resolution": res,
+        "mm_per_px": mm,
+        "targets": list(TARGETS),
+        "weighting": "number",
+        "weights": weights_used,
+        "maps": ["foreground", "boundary", "distance"],
+        "postprocess": post,
+        "sieve_method": settings.sieve_method,
+        "readout": readout,
+        "boundary_pos_weight": pw,
+        "val": {"f1": val_f1, "r2_calibrated": [val_cal[n]["r2"] for n in NAMES],
+                "r2_raw": [val_raw[n]["r2"] for n in NAMES]},
+        "params": asdict(params),
+        "n_parameters": n_params,
+        "psdfactory_version": __version__,
+        "best_epoch": best_epoch,
+        "epochs_run": len(history),
+        "stop_reason": stop_reason,
+        "train_seconds": train_seconds,
+        "precision": precision,
+        "device": str(device),
+    }
+    save_model(out_dir / "model.pt", model, summary)
+    logger.info(f"done: best val loss {best:.4f} at epoch {best_epoch} ({stop_reason}), {train_seconds:.0f} s of "
+        f"training; wrote {out_dir / 'model.pt'}")
+    return summary
+
+
+def write_history(rows: list[dict], path: Path) -> None:
+    keys = ["epoch", "train_loss", "val_loss", "val_mae_mm", "lr", "seconds"]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: r[k] for k in keys})

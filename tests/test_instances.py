@@ -1,0 +1,294 @@
+"""The instance estimator (architecture `instances`): targets, network, read-out, and one tiny
+training run through predict, evaluate, benchmark and export. Nothing trains to convergence:
+the accuracy is a benchmark (README), not a test."""
+
+import csv
+import json
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+import torch
+
+from psdfactory import config as psd_config
+from psdfactory.learn.instances import (
+    DEFAULT_POSTPROCESS,
+    InstanceEstimator,
+    InstanceNet,
+    apply_readout,
+    fit_readout,
+    fully_visible,
+    instance_loss,
+    instance_targets,
+    postprocess,
+    random_crops,
+    resize_mask,
+    target_stack,
+)
+from psdfactory.learn.particles import STAT_NAMES, match_instances, measure_instances
+from psdfactory.manifest import write_shard
+
+from .conftest import make_scene, tiny_config
+
+pytest.importorskip("skimage")
+
+
+def discs(shape, centres, r):
+    """Instance mask of discs painted in order (a later disc wins where they overlap)."""
+    mask = np.zeros(shape, dtype=np.uint16)
+    rr, cc = np.indices(shape)
+    for k, (y, x) in enumerate(centres, start=1):
+        mask[(rr - y) ** 2 + (cc - x) ** 2 <= r * r] = k
+    return mask
+
+
+def test_targets_of_two_touching_discs():
+    mask = discs((40, 60), [(20, 20), (20, 36)], 9)  # overlapping by 2 px: they share a straight border
+    fg, bd, dist = instance_targets(mask)
+    assert fg.dtype == bool and np.array_equal(fg, mask > 0)
+    # the border between them is boundary on both sides; the centres are not
+    row = 20
+    cols = np.flatnonzero((mask[row, :-1] == 1) & (mask[row, 1:] == 2))
+    assert len(cols) == 1
+    c = cols[0]
+    assert bd[row, c] and bd[row, c + 1]
+    assert not bd[20, 20] and not bd[20, 36] and not bd[mask == 0].any()
+    # the distance is 1 at each disc's centre (its maximum) and small at the border between them
+    assert dist.dtype == np.float32 and dist.max() == pytest.approx(1.0) and dist[mask == 0].max() == 0
+    for k, centre in ((1, (20, 20)), (2, (20, 36))):
+        d = np.where(mask == k, dist, -1)
+        peak = np.unravel_index(np.argmax(d), d.shape)
+        assert abs(peak[0] - centre[0]) <= 1 and abs(peak[1] - centre[1]) <= 1
+        assert dist[centre] > 0.85
+    assert dist[row, c] <= 0.2 and dist[row, c + 1] <= 0.2
+    # one tensor per mask: foreground, boundary, distance
+    t = target_stack(mask)
+    assert t.shape == (3, 40, 60) and t.dtype == torch.float32
+
+
+def test_perfect_maps_give_back_the_true_instances():
+    """The post-processing on the targets themselves (a perfect network) recovers the mask."""
+    mask = discs((64, 80), [(16, 16), (16, 31), (44, 20), (40, 60), (58, 75)], 8)
+    mask[5:8, 70:73] = 6  # a 9-px grain
+    maps = np.stack([m.astype(np.float32) for m in instance_targets(mask)])
+    pred = postprocess(maps, DEFAULT_POSTPROCESS)
+    res = match_instances(pred, mask, iou=0.8)
+    assert res.n_pred == res.n_true == 6 and res.n_matched == 6
+    # and the estimator measures them like the true mask
+    est = InstanceEstimator(lambda x: maps[None], {"postprocess": DEFAULT_POSTPROCESS})
+    got = est.analyse_maps(maps, 0.5)
+    ref = measure_instances(mask, 0.5)
+    assert sorted(got.measurements.area_mm2) == pytest.approx(sorted(ref.area_mm2), rel=0.02)
+    assert got.calibrated == pytest.approx(got.raw)  # no read-out: the raw percentiles
+    assert got.sizes_mm.shape == (6,) and got.stats.shape == (len(STAT_NAMES),)
+
+
+@pytest.mark.parametrize("shape", [(1, 3, 33, 47), (2, 3, 64, 64), (1, 3, 9, 70)])
+def test_network_maps_have_the_input_size(shape):
+    net = InstanceNet().eval()
+    with torch.no_grad():
+        out = net(torch.randn(*shape))
+    assert out.shape == (shape[0], 3, *shape[2:]) and torch.isfinite(out).all()
+
+
+def test_loss_is_lower_for_the_true_maps_and_crops_keep_targets_aligned():
+    mask = discs((32, 32), [(10, 10), (10, 22), (24, 16)], 6)
+    t = target_stack(mask)[None]
+    good = torch.stack([(t[:, 0] * 2 - 1) * 8, (t[:, 1] * 2 - 1) * 8, torch.logit(t[:, 2].clamp(0.01, 0.99))], dim=1)
+    assert instance_loss(good, t, 3.0)[0] < 0.5 * instance_loss(torch.zeros_like(good), t, 3.0)[0]
+    # crops turned by flips / rotations: the image and its targets turn together
+    img = (t[:, :1].repeat(1, 3, 1, 1) * 255).to(torch.uint8)  # the image is the foreground itself
+    gen = torch.Generator().manual_seed(0)
+    x, tt = random_crops(img, t, torch.zeros(8, dtype=torch.long), 20, gen)
+    assert x.shape == (8, 3, 20, 20) and tt.shape == (8, 3, 20, 20)
+    assert torch.equal(x[:, 0] > 0, tt[:, 0] > 0)
+    assert len({tuple(c[0].flatten().tolist()) for c in x}) > 1  # not all the same crop
+
+
+def test_readout_recovers_a_linear_map_and_orders_the_targets():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(40, len(STAT_NAMES)))
+    w = rng.normal(size=(len(STAT_NAMES), 3))
+    y = x @ w * 0.05 + np.array([3.0, 8.0, 14.0])  # small slopes: already ordered
+    ro = fit_readout(x, y, alphas=(1e-6,))
+    assert json.loads(json.dumps(ro)) == ro  # plain types only
+    assert apply_readout(ro, x) == pytest.approx(y, abs=1e-3)
+    xn = x.copy()
+    xn[0, 2] = np.nan  # imputed, not propagated
+    assert np.isfinite(apply_readout(ro, xn)).all()
+    p = apply_readout(ro, rng.normal(size=(50, len(STAT_NAMES))) * 30)
+    assert (np.diff(p, axis=1) >= 0).all()
+
+
+def test_fully_visible_excludes_edge_and_lower_particles():
+    mask = np.zeros((20, 30), dtype=np.uint16)
+    mask[5:10, 5:10] = 1  # alone
+    mask[5:10, 15:20] = 2  # touches 3, which lies higher
+    mask[5:10, 20:25] = 3
+    mask[15:20, 10:14] = 4  # touches the edge
+    z = np.array([-np.inf, 1.0, 1.0, 2.0, 1.0])
+    assert fully_visible(mask, z).tolist() == [False, True, False, True, False]
+
+
+def test_resize_mask_keeps_ids():
+    mask = discs((16, 16), [(5, 5), (10, 11)], 3)
+    big = resize_mask(mask, (32, 48))
+    assert big.shape == (32, 48) and set(np.unique(big)) == set(np.unique(mask))
+
+
+def test_train_params_slice_has_the_instance_settings_only_for_instances():
+    cfg = tiny_config()
+    assert "instances" not in psd_config.train_params(cfg, "resnet50")
+    p = psd_config.train_params(cfg, "instances")
+    assert p["instances"]["crops_per_image"] >= 1 and p["input_size"] == 128
+
+
+# ---------------------------------------------------------------------------------------------
+# one tiny training run, then everything downstream of it
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """Two tiny 48-px scenes (train, val), their manifests, and one epoch of training."""
+    from psdfactory.learn.train import train_from_params
+
+    cfg = tiny_config(n_scenes=2, count=[15, 25])
+    cfg["render"]["resolution"] = 48
+    root = tmp_path_factory.mktemp("res")
+    dirs = [make_scene(cfg, root / "tiny" / "scenes" / f"tiny-{i:06d}", index=i) for i in range(2)]
+    m = root / "tiny" / "manifest"
+    out = m / "scenes" / "shard-00000.parquet"
+    write_shard(dirs, root, {"train": 1.0}, out, m / "particles" / "shard-00000.parquet")
+    t = pq.read_table(out)
+    pq.write_table(t.set_column(t.schema.get_field_index("split"), "split", pa.array(["train", "val"])), out)
+    params = psd_config.train_params(cfg, "instances")  # the schema's defaults, then these
+    params.update(pretrained="none", epochs=1, batch_size=2, input_size=32, precision="fp32", seed=1)
+    params["instances"].update(crops_per_image=2)
+    model_dir = root / "models" / "instances"
+    summary = train_from_params(params, root, model_dir)
+    return root, model_dir / "model.pt", summary
+
+
+def test_tiny_training_writes_a_plain_model_file(tiny):
+    from psdfactory.learn.runtime import load_model
+
+    root, model_path, summary = tiny
+    ckpt = torch.load(model_path, map_location="cpu", weights_only=True)  # tensors and plain types only
+    meta = ckpt["meta"]
+    assert meta["arch"] == "instances" and meta["input_size"] == 48 and meta["crop_size"] == 32
+    assert meta["mm_per_px"] == pytest.approx(60 / 48)
+    assert len(meta["readout"]["weights"]) == len(STAT_NAMES) + 1 and set(meta["postprocess"]) >= {"threshold", "h"}
+    model, meta2 = load_model(model_path)
+    assert isinstance(model, InstanceNet)
+    assert meta2["readout"] == meta["readout"] and meta2["postprocess"] == meta["postprocess"]
+    with open(model_path.parent / "history.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 1 and float(rows[0]["train_loss"]) > 0
+
+
+def test_predict_writes_overlays_masks_and_particles(tiny, tmp_path, capsys):
+    from PIL import Image
+
+    from psdfactory.cli import main
+
+    root, model_path, _ = tiny
+    scenes = root / "tiny" / "scenes"
+    args = ["predict", "--model", str(model_path), "--out", str(tmp_path / "p.csv"), "--overlay", str(tmp_path / "ov"),
+            "--masks", str(tmp_path / "masks"), "--particles", str(tmp_path / "particles.csv"), str(scenes)]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "d10_mm" in out and out.count("image.png") == 2
+    with open(tmp_path / "p.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["image"].split("/")[-2] for r in rows] == ["tiny-000000", "tiny-000001"]
+    assert list(rows[0]) == ["image", "d10_mm", "d50_mm", "d90_mm", "error"]  # the CNNs' columns
+    assert all(float(r["d10_mm"]) <= float(r["d50_mm"]) <= float(r["d90_mm"]) for r in rows)
+    with open(tmp_path / "particles.csv") as f:
+        parts = list(csv.DictReader(f))
+    assert not (tmp_path / "particles.csv.partial.csv").exists()
+    for scene in ("tiny-000000", "tiny-000001"):  # both images are called image.png: the folder names them
+        with Image.open(tmp_path / "masks" / f"{scene}_image.png") as im:
+            assert im.mode in ("I;16", "I;16B", "I;16L") and im.size == (48, 48)
+            mask = np.asarray(im)
+        with Image.open(tmp_path / "ov" / f"{scene}_image.png") as im:
+            assert im.mode == "RGB" and im.size == (48, 48)
+        ids = sorted(int(p["id"]) for p in parts if f"/{scene}/" in p["image"])
+        assert ids == sorted(set(np.unique(mask)) - {0})
+    assert parts == [] or set(parts[0]) == {"image", "id", "area_mm2", "sieve_size_mm", "volume_mm3", "touches_edge"}
+    # --resume skips both images, and the particle table keeps their rows
+    assert main([*args[:-1], "--resume", str(scenes)]) == 0
+    with open(tmp_path / "particles.csv") as f:
+        assert sorted(map(str, csv.DictReader(f))) == sorted(map(str, parts))
+    # an image at another scale is resized to the model's, and its mask written at the image's own size
+    img = np.asarray(Image.open(scenes / "tiny-000000" / "image.png"))
+    big = tmp_path / "big.png"
+    Image.fromarray(np.repeat(np.repeat(img, 2, axis=0), 2, axis=1)).save(big)
+    assert main(["predict", "--model", str(model_path), "--mm-per-px", str(60 / 96), "--masks", str(tmp_path / "m2"),
+                 str(big)]) == 0
+    with Image.open(tmp_path / "m2" / "big.png") as im:
+        assert im.size == (96, 96)
+
+
+def test_evaluate_writes_segmentation_and_size_figures(tiny, tmp_path):
+    from psdfactory.learn.evaluate import evaluate
+
+    root, model_path, _ = tiny
+    res = evaluate(model_path, root, ["tiny"], tmp_path / "ev")
+    m = json.loads((tmp_path / "ev" / "metrics.json").read_text())["datasets"]["tiny"]
+    assert res["arch"] == "instances" and m["n"] == 2 and m["split"] == "all"
+    assert {"d10", "d50", "d90", "overall", "raw", "segmentation", "size_error"} <= set(m)
+    seg = m["segmentation"]
+    assert seg["n_true"] > 0 and seg["iou"] == 0.5
+    assert seg["recall"] == pytest.approx(seg["n_matched"] / seg["n_true"])
+    assert seg["n_pred"] == 0 or 0 <= seg["precision"] <= 1
+    se = m["size_error"]
+    assert set(se["matched"]) == {"min_feret", "ellipse_minor"}
+    # measured on the true masks: both estimators within a few tens of % of the true sieve size
+    assert se["true_mask_fully_visible"]["min_feret"]["n"] > 0
+    assert se["true_mask_fully_visible"]["min_feret"]["median"] < 0.5
+    header = (tmp_path / "ev" / "predictions.csv").read_text().splitlines()[0]
+    assert "pred_d50_mm" in header and "raw_d50_mm" in header and "f1" in header
+    assert (tmp_path / "ev" / "scatter.png").is_file()
+
+
+def test_benchmark_times_network_and_watershed(tiny):
+    from psdfactory.deploy.benchmark import benchmark
+
+    root, model_path, _ = tiny
+    b = benchmark(model_path, root, "tiny", batch=2, seconds=0.02, repeats=1)
+    r = b["results"][0]
+    assert b["arch"] == "instances" and r["fast_key"] == "fp32"
+    assert r["paths"]["fp32"]["name"] == "fp32 eager + watershed"
+    assert r["paths"]["fast"]["batched"]["images_per_s"] > 0 and r["paths"]["fp32"]["batch1"]["batch"] == 1
+    assert r["stages"]["network_ms_per_image"] > 0 and r["stages"]["postprocess_ms_per_image"] > 0
+    assert r["paths"]["fp32"]["accuracy"]["n"] == 2
+
+
+def test_export_onnx_maps_and_predict_with_them(tiny, tmp_path):
+    from psdfactory.learn.capability import detect
+
+    if not detect().onnxruntime:
+        pytest.skip("onnxruntime is not installed")
+    from psdfactory import PsdError
+    from psdfactory.deploy.export import export
+    from psdfactory.deploy.predict import predict_files
+
+    root, model_path, _ = tiny
+    rep = export(model_path, tmp_path / "exp")
+    assert rep["onnx"]["max_abs_diff"] < 1e-3 and (tmp_path / "exp" / "meta.json").is_file()
+    img = str(root / "tiny" / "scenes" / "tiny-000001" / "image.png")
+    ref = predict_files(model_path, [img], particles_out=tmp_path / "ref.csv")[0]
+    got = predict_files(tmp_path / "exp" / "model.onnx", [img], particles_out=tmp_path / "got.csv")[0]
+    assert not got["error"]
+    assert len((tmp_path / "got.csv").read_text().splitlines()) == len((tmp_path / "ref.csv").read_text().splitlines())
+    keys = ("d10_mm", "d50_mm", "d90_mm")
+    assert [got[k] for k in keys] == pytest.approx([ref[k] for k in keys], abs=1e-3)
+    with pytest.raises(PsdError, match="int8"):
+        export(model_path, tmp_path / "exp8", int8_results=root, dataset="tiny")
+    # a meta.json with a broken read-out is refused before anything runs
+    meta = json.loads((tmp_path / "exp" / "meta.json").read_text())
+    meta["readout"]["weights"] = [[1.0]]
+    (tmp_path / "exp" / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(PsdError, match="readout"):
+        predict_files(tmp_path / "exp" / "model.onnx", [img])
