@@ -127,6 +127,20 @@ def onnx_runners(model: nn.Module, size: int, keys: list[str], calibration: np.n
     return {k: OrtModel(files[k], torch.get_num_threads()) for k in keys}
 
 
+def model_summary(model: nn.Module, size: int, device: torch.device, caps: Capabilities) -> dict:
+    """What every benchmark result starts with: device, input size, model size and cost, CPU, budget."""
+    return {
+        "device": str(device) if device.type == "cpu" else torch.cuda.get_device_name(device),
+        "input_size": size,
+        "params_m": count_parameters(model) / 1e6,
+        "gflops": gflops(model.float().to(device), size),
+        "threads": torch.get_num_threads(),
+        "cpu": caps.as_dict(),
+        "max_r2_change": MAX_R2_CHANGE,
+        "paths": {},
+    }
+
+
 def benchmark_model(model: nn.Module, meta: dict, device: torch.device, results_root: Path | None,
                     dataset: str | None, batch: int, seconds: float, repeats: int,
                     caps: Capabilities | None = None) -> dict:
@@ -141,14 +155,7 @@ def benchmark_model(model: nn.Module, meta: dict, device: torch.device, results_
     caps = caps or capability.detect()
     size = meta["input_size"]
     out = {
-        "device": str(device) if device.type == "cpu" else torch.cuda.get_device_name(device),
-        "input_size": size,
-        "params_m": count_parameters(model) / 1e6,
-        "gflops": gflops(model.float().to(device), size),
-        "threads": torch.get_num_threads(),
-        "cpu": caps.as_dict(),
-        "max_r2_change": MAX_R2_CHANGE,
-        "paths": {},
+        **model_summary(model, size, device, caps),
     }
     rows = eval_rows(results_root, dataset) if results_root is not None else None
     todo, out["skipped"] = candidates(device, caps)
@@ -221,14 +228,7 @@ def benchmark_instances(model: nn.Module, meta: dict, device: torch.device, resu
         images = torch.randint(0, 256, (max(batch, 1), 3, size, size), dtype=torch.uint8, generator=gen)
     mm = float(meta["mm_per_px"])
     out = {
-        "device": str(device) if device.type == "cpu" else torch.cuda.get_device_name(device),
-        "input_size": size,
-        "params_m": count_parameters(model) / 1e6,
-        "gflops": gflops(model.float().to(device), size),
-        "threads": torch.get_num_threads(),
-        "cpu": caps.as_dict(),
-        "max_r2_change": MAX_R2_CHANGE,
-        "paths": {},
+        **model_summary(model, size, device, caps),
         "skipped": {"other paths": "the instance estimator is timed as fp32 eager + watershed only (its "
                                    "post-processing runs in Python; the exported ONNX network is not benchmarked)"},
     }

@@ -56,14 +56,19 @@ def evaluate(model_path: Path, results_root: Path, datasets: list[str], out_dir:
             preds_rows.append({"dataset": ds, "scene_id": r["scene_id"], "split": r["split"],
                                **{f"true_{n}_mm": float(v) for n, v in zip(NAMES, yy, strict=True)},
                                **{f"pred_{n}_mm": float(v) for n, v in zip(NAMES, pp, strict=True)}})
+    write_evaluation(out_dir, preds_rows, meta["arch"], result)
+    return result
+
+
+def write_evaluation(out_dir: Path, preds_rows: list[dict], arch: str, result: dict) -> None:
+    """predictions.csv, scatter.png and metrics.json of one evaluated model."""
     out_dir.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_dir / "predictions.csv") as tmp, open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(preds_rows[0]))
         w.writeheader()
         w.writerows(preds_rows)
-    plot_scatter(preds_rows, meta["arch"], out_dir / "scatter.png")
+    plot_scatter(preds_rows, arch, out_dir / "scatter.png")
     write_json(out_dir / "metrics.json", result)
-    return result
 
 
 def plot_scatter(rows: list[dict], arch: str, out: Path) -> None:
@@ -185,11 +190,5 @@ def evaluate_instances(model: torch.nn.Module, meta: dict, results_root: Path, d
             + ", raw " + " / ".join(f"{mets['raw'][n]['r2']:.3f}" for n in NAMES)
             + f"; P/R/F1 {seg['precision']:.3f}/{seg['recall']:.3f}/{seg['f1']:.3f}; size error of matched particles "
             + (f"median {100 * se['median']:.1f} %, p90 {100 * se['p90']:.1f} %" if se["n"] else "(none matched)"))
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out_dir / "predictions.csv") as tmp, open(tmp, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(preds_rows[0]))
-        w.writeheader()
-        w.writerows(preds_rows)
-    plot_scatter(preds_rows, meta["arch"], out_dir / "scatter.png")
-    write_json(out_dir / "metrics.json", result)
+    write_evaluation(out_dir, preds_rows, meta["arch"], result)
     return result
