@@ -11,12 +11,16 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
+from psdfactory import PsdError
 from psdfactory import config as psd_config
 from psdfactory.learn.instances import (
     DEFAULT_POSTPROCESS,
+    MAPS,
     InstanceEstimator,
     InstanceNet,
     apply_readout,
+    decode_size,
+    encode_size,
     fit_readout,
     fully_visible,
     instance_loss,
@@ -26,7 +30,7 @@ from psdfactory.learn.instances import (
     resize_mask,
     target_stack,
 )
-from psdfactory.learn.particles import STAT_NAMES, match_instances, measure_instances
+from psdfactory.learn.particles import READOUT_FEATURES, STAT_NAMES, match_instances, measure_instances
 from psdfactory.manifest import write_shard
 
 from .conftest import make_scene, tiny_config
@@ -62,10 +66,37 @@ def test_targets_of_two_touching_discs():
         assert abs(peak[0] - centre[0]) <= 1 and abs(peak[1] - centre[1]) <= 1
         assert dist[centre] > 0.85
     assert dist[row, c] <= 0.2 and dist[row, c + 1] <= 0.2
-    # one tensor per mask: foreground, boundary, distance
+    # one tensor per mask: foreground, boundary, distance (and the size map when sizes are known)
     t = target_stack(mask)
     assert t.shape == (3, 40, 60) and t.dtype == torch.float32
+    sizes = np.array([np.nan, 14.0, 40.0])  # by mask id: disc 2 is a bigger grain, mostly hidden
+    t4 = target_stack(mask, sizes)
+    assert t4.shape == (len(MAPS), 40, 60) and torch.equal(t4[:3], t)
+    assert decode_size(t4[3][mask == 1].numpy()) == pytest.approx(14.0, rel=1e-5)
+    assert decode_size(t4[3][mask == 2].numpy()) == pytest.approx(40.0, rel=1e-5)
+    assert (t4[3][mask == 0] == 0).all()
+    with pytest.raises(PsdError, match="id 2"):
+        target_stack(mask, sizes[:2])
 
+
+def test_size_encoding_round_trips_and_clips():
+    px = np.array([0.5, 1.0, 7.3, 100.0, 1024.0])
+    assert decode_size(encode_size(px)) == pytest.approx(px, rel=1e-9)
+    assert encode_size(np.array([0.01, 1e6])).tolist() == [0.0, 1.0]
+
+
+def test_size_map_measures_partly_hidden_particles_whole():
+    """With a perfect size map, the 'size_map' sieve size of a half-hidden disc is its true size,
+    where its footprint's min Feret diameter reads the visible half."""
+    mask = discs((64, 64), [(32, 20), (32, 44)], 14)
+    mask[:, :20] = 0  # the left disc is cut in half (e.g. hidden under another particle)
+    sizes = np.array([np.nan, 28.0, 28.0])
+    maps = target_stack(mask, sizes).numpy()
+    est = InstanceEstimator(lambda x: maps[None], {"postprocess": DEFAULT_POSTPROCESS, "sieve_method": "size_map"})
+    got = est.analyse_maps(maps, 0.5)
+    assert got.sizes_mm == pytest.approx([14.0, 14.0], rel=0.01)
+    feret = measure_instances(got.mask, 0.5).min_feret_mm
+    assert feret.min() < 0.6 * 14.0
 
 def test_perfect_maps_give_back_the_true_instances():
     """The post-processing on the targets themselves (a perfect network) recovers the mask."""
@@ -89,19 +120,26 @@ def test_network_maps_have_the_input_size(shape):
     net = InstanceNet().eval()
     with torch.no_grad():
         out = net(torch.randn(*shape))
-    assert out.shape == (shape[0], 3, *shape[2:]) and torch.isfinite(out).all()
+    assert out.shape == (shape[0], len(MAPS), *shape[2:]) and torch.isfinite(out).all()
 
 
 def test_loss_is_lower_for_the_true_maps_and_crops_keep_targets_aligned():
     mask = discs((32, 32), [(10, 10), (10, 22), (24, 16)], 6)
-    t = target_stack(mask)[None]
-    good = torch.stack([(t[:, 0] * 2 - 1) * 8, (t[:, 1] * 2 - 1) * 8, torch.logit(t[:, 2].clamp(0.01, 0.99))], dim=1)
+    t = target_stack(mask, np.array([np.nan, 12.0, 12.0, 30.0]))[None]
+    good = torch.stack([(t[:, 0] * 2 - 1) * 8, (t[:, 1] * 2 - 1) * 8, torch.logit(t[:, 2].clamp(0.01, 0.99)),
+                        torch.logit(t[:, 3].clamp(0.01, 0.99))], dim=1)
     assert instance_loss(good, t, 3.0)[0] < 0.5 * instance_loss(torch.zeros_like(good), t, 3.0)[0]
+    # the size term: in octaves of size on the particles' pixels
+    wrong = good.clone()
+    wrong[:, 3] = torch.logit(torch.from_numpy(encode_size(np.full((32, 32), 24.0))).float())  # 12 → 24 px: 1 octave
+    parts = instance_loss(wrong, t, 3.0)[1]
+    share = float(((mask > 0) & (mask < 3)).sum() / (mask > 0).sum())
+    assert parts["size"] == pytest.approx(share * 1.0 + (1 - share) * np.log2(30 / 24), rel=0.02)
     # crops turned by flips / rotations: the image and its targets turn together
     img = (t[:, :1].repeat(1, 3, 1, 1) * 255).to(torch.uint8)  # the image is the foreground itself
     gen = torch.Generator().manual_seed(0)
     x, tt = random_crops(img, t, torch.zeros(8, dtype=torch.long), 20, gen)
-    assert x.shape == (8, 3, 20, 20) and tt.shape == (8, 3, 20, 20)
+    assert x.shape == (8, 3, 20, 20) and tt.shape == (8, len(MAPS), 20, 20)
     assert torch.equal(x[:, 0] > 0, tt[:, 0] > 0)
     assert len({tuple(c[0].flatten().tolist()) for c in x}) > 1  # not all the same crop
 
@@ -110,10 +148,16 @@ def test_readout_recovers_a_linear_map_and_orders_the_targets():
     rng = np.random.default_rng(0)
     x = rng.normal(size=(40, len(STAT_NAMES)))
     w = rng.normal(size=(len(STAT_NAMES), 3))
+    used = np.isin(STAT_NAMES, READOUT_FEATURES)
+    w[~used] = 0.0  # the labels depend on the read-out's features only
     y = x @ w * 0.05 + np.array([3.0, 8.0, 14.0])  # small slopes: already ordered
     ro = fit_readout(x, y, alphas=(1e-6,))
     assert json.loads(json.dumps(ro)) == ro  # plain types only
+    assert ro["features"] == list(READOUT_FEATURES)
     assert apply_readout(ro, x) == pytest.approx(y, abs=1e-3)
+    x2 = x.copy()
+    x2[:, ~used] *= 100  # the field of view's statistics (edge fraction, mm/px) change nothing
+    assert apply_readout(ro, x2) == pytest.approx(apply_readout(ro, x))
     xn = x.copy()
     xn[0, 2] = np.nan  # imputed, not propagated
     assert np.isfinite(apply_readout(ro, xn)).all()
@@ -178,7 +222,9 @@ def test_tiny_training_writes_a_plain_model_file(tiny):
     meta = ckpt["meta"]
     assert meta["arch"] == "instances" and meta["input_size"] == 48 and meta["crop_size"] == 32
     assert meta["mm_per_px"] == pytest.approx(60 / 48)
-    assert len(meta["readout"]["weights"]) == len(STAT_NAMES) + 1 and set(meta["postprocess"]) >= {"threshold", "h"}
+    assert len(meta["readout"]["weights"]) == len(meta["readout"]["features"]) + 1
+    assert set(meta["postprocess"]) >= {"threshold", "h"} and meta["maps"] == list(MAPS)
+    assert meta["sieve_method"] == "size_map"
     model, meta2 = load_model(model_path)
     assert isinstance(model, InstanceNet)
     assert meta2["readout"] == meta["readout"] and meta2["postprocess"] == meta["postprocess"]
@@ -243,7 +289,9 @@ def test_evaluate_writes_segmentation_and_size_figures(tiny, tmp_path):
     assert seg["recall"] == pytest.approx(seg["n_matched"] / seg["n_true"])
     assert seg["n_pred"] == 0 or 0 <= seg["precision"] <= 1
     se = m["size_error"]
-    assert set(se["matched"]) == {"min_feret", "ellipse_minor"}
+    assert set(se["matched"]) == {"min_feret", "ellipse_minor", "size_map"}
+    # the size map read on the true masks is scored like the footprint methods
+    assert se["true_mask_fully_visible"]["size_map"]["n"] == se["true_mask_fully_visible"]["min_feret"]["n"]
     # measured on the true masks: both estimators within a few tens of % of the true sieve size
     assert se["true_mask_fully_visible"]["min_feret"]["n"] > 0
     assert se["true_mask_fully_visible"]["min_feret"]["median"] < 0.5

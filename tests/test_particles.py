@@ -8,6 +8,7 @@ import pytest
 from psdfactory import PsdError
 from psdfactory.psd import cumulative_curve, weighted_percentiles
 from psdfactory.learn.particles import (
+    SIEVE_METHODS,
     STAT_NAMES,
     THICKNESS_RATIO,
     draw_overlay,
@@ -248,7 +249,8 @@ def test_instance_stats(shapes_mask):
     assert st.shape == (len(STAT_NAMES),) and np.isfinite(st).all()
     got = dict(zip(STAT_NAMES, st))
     np.testing.assert_allclose([got["d10_mm"], got["d50_mm"], got["d90_mm"]], weighted_percentiles(m.min_feret_mm, None))
-    assert got["log_count"] == pytest.approx(np.log1p(4))
+    cm2 = shapes_mask.size * MM**2 / 100  # densities per cm² of image: a larger view of the same bed reads the same
+    assert got["log_density"] == pytest.approx(np.log1p(4 / cm2))
     assert got["covered_fraction"] == pytest.approx((shapes_mask > 0).mean())
     assert got["edge_fraction"] == 0.0 and got["mm_per_px"] == MM
 
@@ -257,19 +259,57 @@ def test_instance_stats(shapes_mask):
     mask[0:40, 160:200] = 99
     got = dict(zip(STAT_NAMES, instance_stats(measure_instances(mask, MM))))
     assert got["edge_fraction"] == pytest.approx(1 / 5)
-    assert got["log_count"] == pytest.approx(np.log1p(4)) and got["log_count_all"] == pytest.approx(np.log1p(5))
+    assert got["log_density"] == pytest.approx(np.log1p(4 / cm2))
+    assert got["log_density_all"] == pytest.approx(np.log1p(5 / cm2))
     assert got["d90_mm"] < 36 * MM  # the 40 px edge square is not in the sizes
 
     # nothing to measure: NaN sizes (or the fill value), never an exception
     empty = measure_instances(np.zeros((16, 16), dtype=np.uint16), MM)
     st = dict(zip(STAT_NAMES, instance_stats(empty)))
-    assert np.isnan(st["d50_mm"]) and st["log_count"] == 0.0 and st["covered_fraction"] == 0.0 and st["edge_fraction"] == 0.0
+    assert np.isnan(st["d50_mm"]) and st["log_density"] == 0.0 and st["covered_fraction"] == 0.0 and st["edge_fraction"] == 0.0
     assert np.isfinite(instance_stats(empty, fill_value=0.0)).all()
     # everything touches the edge: sizes fall back to all instances
     edge_only = np.zeros((16, 16), dtype=np.uint16)
     edge_only[0:4, 0:4] = 1
     st = dict(zip(STAT_NAMES, instance_stats(measure_instances(edge_only, 1.0))))
     assert st["d50_mm"] == pytest.approx(4.0) and st["edge_fraction"] == 1.0
+
+
+def test_stats_of_a_tiled_bed_do_not_change_with_the_field_of_view(shapes_mask):
+    """The read-out's counts and coverage are the same for a view of four times the area of the
+    same bed (its percentiles too, up to the interpolation between fewer samples)."""
+    from psdfactory.learn.particles import READOUT_FEATURES
+
+    one = measure_instances(shapes_mask, MM)
+    tiled = shapes_mask.astype(np.int64).copy()
+    big = np.block([[tiled, tiled + 100], [tiled + 200, tiled + 300]])
+    big[big % 100 == 0] = 0
+    four = measure_instances(big.astype(np.uint16), MM)
+    a = dict(zip(STAT_NAMES, instance_stats(one)))
+    b = dict(zip(STAT_NAMES, instance_stats(four)))
+    assert {"log_density", "log_density_all", "covered_fraction"} <= set(READOUT_FEATURES)
+    assert not {"edge_fraction", "mm_per_px"} & set(READOUT_FEATURES)
+    for k in ("mean_mm", "std_mm", "log_density", "log_density_all", "covered_fraction"):
+        assert b[k] == pytest.approx(a[k], rel=1e-6, abs=1e-9), k
+
+
+def test_size_map_median_per_instance(shapes_mask):
+    """The 'size_map' sieve size is the median of the map over each instance, in mm."""
+    rng = np.random.default_rng(0)
+    size_px = rng.uniform(5, 50, size=shapes_mask.shape)
+    m = measure_instances(shapes_mask, MM, volume_from="size_map", size_map_px=size_px)
+    assert m.methods() == SIEVE_METHODS
+    for i, k in enumerate(m.ids):
+        assert sieve_size(m, "size_map")[i] == pytest.approx(np.median(size_px[shapes_mask == k]) * MM)
+    assert np.allclose(m.volume_mm3, 2 / 3 * m.area_mm2 * m.thickness_ratio * m.size_map_mm)
+    plain = measure_instances(shapes_mask, MM)
+    assert "size_map" not in plain.methods()
+    with pytest.raises(PsdError, match="size map"):
+        sieve_size(plain, "size_map")
+    with pytest.raises(PsdError, match="size map"):
+        measure_instances(shapes_mask, MM, volume_from="size_map")
+    with pytest.raises(PsdError, match="differ in size"):
+        measure_instances(shapes_mask, MM, size_map_px=size_px[:10])
 
 
 def two_touching_discs(r: float = 12, gap: float = 20) -> np.ndarray:

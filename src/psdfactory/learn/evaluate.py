@@ -114,7 +114,15 @@ def evaluate_instances(model: torch.nn.Module, meta: dict, results_root: Path, d
     plus 'raw', 'segmentation' and 'size_error'), predictions.csv and scatter.png."""
     from ..io import read_png
     from .data import targets as label_targets
-    from .instances import ARCH, InstanceEstimator, fully_visible, read_particles, size_errors, torch_maps_fn
+    from .instances import (
+        ARCH,
+        InstanceEstimator,
+        fully_visible,
+        read_particles,
+        size_errors,
+        size_map_px,
+        torch_maps_fn,
+    )
     from .particles import SIEVE_METHODS, match_instances, measure_instances, sieve_size
 
     est = InstanceEstimator(torch_maps_fn(model, device, precision), meta)
@@ -134,7 +142,8 @@ def evaluate_instances(model: torch.nn.Module, meta: dict, results_root: Path, d
             img = read_png(Path(results_root) / r["image_path"])
             true = read_png(Path(results_root) / r["mask_path"]).astype(np.int64)
             x = torch.from_numpy(np.array(img, dtype=np.uint8, copy=True)).permute(2, 0, 1)[None]
-            res = est.analyse(x, float(r["mm_per_px"]))[0]
+            maps = est.maps(x)[0]
+            res = est.analyse_maps(maps, float(r["mm_per_px"]))
             cal.append(res.calibrated)
             raw.append(res.raw)
             match = match_instances(res.mask, true)
@@ -155,12 +164,13 @@ def evaluate_instances(model: torch.nn.Module, meta: dict, results_root: Path, d
             tid = match.true_ids
             for key, sel in (("matched", inner), ("matched_fully_visible", inner & visible[tid])):
                 sizes[key]["true"] += size_by_id[tid[sel]].tolist()
-                for meth in SIEVE_METHODS:
+                for meth in m.methods():
                     sizes[key]["est"][meth] += sieve_size(m, meth)[k[sel]].tolist()
-            tm = measure_instances(true, float(r["mm_per_px"]))  # the estimators on perfect masks
+            # the estimators on perfect masks (the size map: the network's, read on the true instances)
+            tm = measure_instances(true, float(r["mm_per_px"]), size_map_px=size_map_px(maps))
             vis = visible[tm.ids]
             sizes["true_mask_fully_visible"]["true"] += size_by_id[tm.ids[vis]].tolist()
-            for meth in SIEVE_METHODS:
+            for meth in tm.methods():
                 sizes["true_mask_fully_visible"]["est"][meth] += sieve_size(tm, meth)[vis].tolist()
             preds_rows.append({"dataset": ds, "scene_id": r["scene_id"], "split": r["split"],
                                **{f"true_{n}_mm": float(r[f"{n}_mm"]) for n in NAMES},

@@ -24,6 +24,7 @@ from .instances import (
     DECODER,
     DEFAULT_POSTPROCESS,
     FULL_RES,
+    MAPS,
     POSTPROCESS_GRID,
     TRUNK,
     InstanceEstimator,
@@ -36,6 +37,7 @@ from .instances import (
     load_scenes,
     postprocess,
     random_crops,
+    read_particles,
     torch_maps_fn,
 )
 from .particles import match_instances
@@ -109,8 +111,9 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         raise PsdError(f"dataset {params.dataset!r} has {len(train_rows)} train and {len(val_rows)} val scenes; "
                        "training needs both (datasets.<name>.split and n_scenes)")
     t_load = time.perf_counter()
-    x_train, t_train = load_scenes(results_root, train_rows)
-    x_val, t_val = load_scenes(results_root, val_rows)
+    particles = read_particles(results_root, params.dataset)  # the size map's targets
+    x_train, t_train = load_scenes(results_root, train_rows, particles)
+    x_val, t_val = load_scenes(results_root, val_rows, particles)
     crop = min(int(params.input_size), *x_train.shape[-2:])
     pw = boundary_weight(t_train)
     model, weights_used = build_instance_net(params.pretrained)
@@ -218,7 +221,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         "targets": list(TARGETS),
         "weighting": "number",
         "weights": weights_used,
-        "maps": ["foreground", "boundary", "distance"],
+        "maps": list(MAPS),
         "postprocess": post,
         "sieve_method": settings.sieve_method,
         "readout": readout,

@@ -42,6 +42,7 @@ from ..io import read_png
 from ..psd import TARGETS
 from .particles import (
     DEFAULT_SIEVE_METHOD,
+    READOUT_FEATURES,
     SIEVE_METHODS,
     STAT_NAMES,
     InstanceMeasurements,
@@ -59,6 +60,11 @@ ARCH = "instances"
 TRUNK = "resnet18"
 DECODER = (64, 32, 16)  # channels of the decoder stages at strides 4, 2, 1
 FULL_RES = 8  # channels of the full-resolution skip
+# the maps the network predicts, in this order; "size": the log size of the particle a pixel
+# belongs to (its true sieve size, in pixels, however much of it is hidden), encoded in [0, 1]
+MAPS = ("foreground", "boundary", "distance", "size")
+MASK_MAPS = MAPS[:3]  # what a model trained before the size map predicts
+SIZE_RANGE_PX = (0.5, 1024.0)  # sizes the size map can express (log-linear in between)
 DEFAULT_POSTPROCESS = {"threshold": 0.5, "h": 0.2, "min_distance": 0.0, "min_area_px": 4, "use_boundary": True}
 # the post-processing grid searched on the validation masks after training
 POSTPROCESS_GRID = {"h": (0.1, 0.2, 0.35, 0.5), "use_boundary": (False, True), "min_distance": (0.0, 3.0)}
@@ -89,6 +95,29 @@ class InstanceSettings:
 # targets
 
 
+def encode_size(size_px: np.ndarray) -> np.ndarray:
+    """Sizes in pixels → the size map's values in [0, 1] (log-linear over SIZE_RANGE_PX)."""
+    lo, hi = np.log2(SIZE_RANGE_PX)
+    return np.clip((np.log2(np.maximum(size_px, 1e-9)) - lo) / (hi - lo), 0.0, 1.0)
+
+
+def decode_size(value: np.ndarray) -> np.ndarray:
+    """The size map's values in [0, 1] → sizes in pixels."""
+    lo, hi = np.log2(SIZE_RANGE_PX)
+    return np.exp2(lo + np.asarray(value, dtype=np.float64) * (hi - lo))
+
+
+def size_target(mask: np.ndarray, size_px_by_id: np.ndarray) -> np.ndarray:
+    """float32 H×W: each instance pixel the encoded true size of its particle (`size_px_by_id[k]`
+    for mask id k), 0 on the background (the loss only looks at instance pixels)."""
+    m = np.asarray(mask).astype(np.int64)
+    if m.max(initial=0) >= len(size_px_by_id):
+        raise PsdError(f"the mask has id {int(m.max())} but sizes are known for ids < {len(size_px_by_id)}")
+    lut = encode_size(np.nan_to_num(np.asarray(size_px_by_id, float), nan=1.0)).astype(np.float32)
+    lut[0] = 0.0
+    return lut[m]
+
+
 def instance_targets(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(foreground, boundary, distance) of an instance mask (0 = background, k = one particle):
     foreground and boundary as bool H×W, distance float32 H×W in [0, 1] — each instance's
@@ -115,10 +144,14 @@ def instance_targets(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return fg, boundary, dist
 
 
-def target_stack(mask: np.ndarray) -> torch.Tensor:
-    """The targets of one mask as a float32 3×H×W tensor (foreground, boundary, distance)."""
+def target_stack(mask: np.ndarray, size_px_by_id: np.ndarray | None = None) -> torch.Tensor:
+    """The targets of one mask as a float32 C×H×W tensor in the order of MAPS: foreground,
+    boundary, distance, and with `size_px_by_id` (true size in pixels per mask id) the size."""
     fg, bd, dist = instance_targets(mask)
-    return torch.from_numpy(np.stack([fg.astype(np.float32), bd.astype(np.float32), dist]))
+    maps = [fg.astype(np.float32), bd.astype(np.float32), dist]
+    if size_px_by_id is not None:
+        maps.append(size_target(mask, size_px_by_id))
+    return torch.from_numpy(np.stack(maps))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -130,10 +163,11 @@ def _cbr(cin: int, cout: int) -> nn.Sequential:
 
 
 class InstanceNet(nn.Module):
-    """ResNet-18 trunk (stem, layer1, layer2; stride 8) + U-Net decoder → N×3×H×W logits
-    (foreground, boundary, normalised distance) at the input's size, for any H, W ≥ 1."""
+    """ResNet-18 trunk (stem, layer1, layer2; stride 8) + U-Net decoder → N×C×H×W logits (the
+    first `n_maps` of MAPS) at the input's size, for any H, W ≥ 1."""
 
-    def __init__(self, trunk: nn.Module | None = None, decoder: tuple[int, ...] = DECODER, full: int = FULL_RES):
+    def __init__(self, trunk: nn.Module | None = None, decoder: tuple[int, ...] = DECODER, full: int = FULL_RES,
+                 n_maps: int = len(MAPS)):
         super().__init__()
         if trunk is None:
             import torchvision
@@ -150,9 +184,9 @@ class InstanceNet(nn.Module):
             ups.append(_cbr(prev + s, c))
             prev = c
         self.up = nn.ModuleList(ups)
-        self.head = nn.Conv2d(prev, 3, 1)
+        self.head = nn.Conv2d(prev, n_maps, 1)
         with torch.no_grad():  # start near the class balance: a dense bed is mostly foreground, rarely boundary
-            self.head.bias.copy_(torch.tensor([1.0, -1.0, 0.0]))
+            self.head.bias.copy_(torch.tensor([1.0, -1.0, 0.0, 0.0][:n_maps]))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         f0 = self.full(x)
@@ -201,19 +235,25 @@ def build_instance_net(pretrained: str = "none") -> tuple[InstanceNet, str]:
             used = "none (auto: ImageNet weights unavailable, trained from scratch)"
     elif pretrained != "none":
         raise PsdError(f"train.pretrained must be auto, imagenet or none, got {pretrained!r}")
-    return InstanceNet(trunk), used
+    return InstanceNet(trunk, n_maps=len(MAPS)), used
 
 
 def instance_loss(logits: torch.Tensor, targets: torch.Tensor, boundary_pos_weight: float) -> tuple[torch.Tensor, dict]:
-    """BCE(foreground) + BCE(boundary, positive-weighted) + L1(distance) on foreground pixels."""
+    """BCE(foreground) + BCE(boundary, positive-weighted) + L1(distance) on foreground pixels,
+    and with a size map + L1(log2 size, in octaves) on foreground pixels."""
     logits = logits.float()
     fg, bd, dist = targets[:, 0], targets[:, 1], targets[:, 2]
     l_fg = F.binary_cross_entropy_with_logits(logits[:, 0], fg)
     pw = torch.tensor(boundary_pos_weight, device=logits.device)
     l_bd = F.binary_cross_entropy_with_logits(logits[:, 1], bd, pos_weight=pw)
-    l_d = ((torch.sigmoid(logits[:, 2]) - dist).abs() * fg).sum() / fg.sum().clamp_min(1.0)
-    total = l_fg + l_bd + l_d
-    return total, {"fg": float(l_fg.detach()), "boundary": float(l_bd.detach()), "distance": float(l_d.detach())}
+    n_fg = fg.sum().clamp_min(1.0)
+    l_d = ((torch.sigmoid(logits[:, 2]) - dist).abs() * fg).sum() / n_fg
+    parts = {"fg": l_fg, "boundary": l_bd, "distance": l_d}
+    if logits.shape[1] > 3:
+        octaves = float(np.log2(SIZE_RANGE_PX[1] / SIZE_RANGE_PX[0]))
+        parts["size"] = ((torch.sigmoid(logits[:, 3]) - targets[:, 3]).abs() * fg).sum() / n_fg * octaves
+    total = sum(parts.values())
+    return total, {k: float(v.detach()) for k, v in parts.items()}
 
 
 def boundary_weight(targets: torch.Tensor) -> float:
@@ -280,13 +320,21 @@ def _impute(x: np.ndarray, fill: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(x), x, fill[None, :])
 
 
-def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOUT_ALPHAS, folds: int = 5) -> dict:
-    """A ridge read-out of the labels (N×3) from instance statistics (N×F), as plain lists: NaN
-    features imputed with the training means, features standardised, the ridge strength (× N)
-    picked by k-fold cross-validated mean R² where there are enough scenes."""
+def readout_columns(x: np.ndarray, features: list[str] | tuple[str, ...]) -> np.ndarray:
+    """The columns `features` (names of STAT_NAMES) of instance statistics (N×len(STAT_NAMES))."""
+    x = np.array(x, dtype=float, ndmin=2)
+    return x[:, [STAT_NAMES.index(f) for f in features]]
+
+
+def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOUT_ALPHAS, folds: int = 5,
+                features: tuple[str, ...] = READOUT_FEATURES) -> dict:
+    """A ridge read-out of the labels (N×3) from instance statistics (N×len(STAT_NAMES); the
+    columns `features` are used), as plain lists: NaN features imputed with the training means,
+    features standardised, the ridge strength (× N) picked by k-fold cross-validated mean R²
+    where there are enough scenes."""
     from .ceiling import MIN_SCENES, cross_validated_r2
 
-    x, y = np.asarray(x, float), np.asarray(y, float)
+    x, y = readout_columns(x, features), np.asarray(y, float)
     fill = np.nanmean(np.where(np.isfinite(x), x, np.nan), axis=0) if len(x) else np.zeros(x.shape[1])
     fill = np.where(np.isfinite(fill), fill, 0.0)
     x = _impute(x, fill)
@@ -303,14 +351,15 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
     reg = alpha * len(x) * np.eye(a.shape[1])
     reg[0, 0] = 0.0
     w = np.linalg.solve(a.T @ a + reg, a.T @ y)
-    return {"features": list(STAT_NAMES), "impute": fill.tolist(), "mean": mu.tolist(), "scale": sd.tolist(),
+    return {"features": list(features), "impute": fill.tolist(), "mean": mu.tolist(), "scale": sd.tolist(),
             "weights": w.tolist(), "alpha": float(alpha), "n_scenes": int(len(x)),
             "cv_r2": [float(v) for v in cv[alpha]] if cv else None}
 
 
 def apply_readout(readout: dict, x: np.ndarray) -> np.ndarray:
-    """Calibrated d10/d50/d90 (N×3, mm) from instance statistics, sorted so d10 ≤ d50 ≤ d90."""
-    x = _impute(x, np.asarray(readout["impute"], float))
+    """Calibrated d10/d50/d90 (N×3, mm) from instance statistics (N×len(STAT_NAMES)), sorted so
+    d10 ≤ d50 ≤ d90."""
+    x = _impute(readout_columns(x, readout["features"]), np.asarray(readout["impute"], float))
     z = (x - np.asarray(readout["mean"], float)) / np.asarray(readout["scale"], float)
     p = np.column_stack([np.ones(len(z)), z]) @ np.asarray(readout["weights"], float)
     return np.sort(p, axis=1)
@@ -347,10 +396,10 @@ class InstanceEstimator:
 
     def analyse_maps(self, maps: np.ndarray, mm_per_px: float, post: dict | None = None) -> InstanceResult:
         mask = postprocess(maps, post or self.post)
-        return self.result(mask, mm_per_px)
+        return self.result(mask, mm_per_px, size_map_px(maps))
 
-    def result(self, mask: np.ndarray, mm_per_px: float) -> InstanceResult:
-        m = measure_instances(mask, mm_per_px, volume_from=self.method)
+    def result(self, mask: np.ndarray, mm_per_px: float, size_px: np.ndarray | None = None) -> InstanceResult:
+        m = measure_instances(mask, mm_per_px, volume_from=self.method, size_map_px=size_px)
         stats = instance_stats(m, self.method)
         psd = raw_psd(m, self.method)
         raw = np.array([psd[k] for k in TARGETS]) if psd else np.full(3, np.nan)
@@ -362,6 +411,11 @@ class InstanceEstimator:
         scales = mm_per_px if isinstance(mm_per_px, (list, tuple)) else [mm_per_px] * len(images_u8)
         maps = self.maps(images_u8)
         return [self.analyse_maps(mp, s) for mp, s in zip(maps, scales, strict=True)]
+
+
+def size_map_px(maps: np.ndarray) -> np.ndarray | None:
+    """The size map of one image's maps (C×H×W), decoded to pixels; None for a model without one."""
+    return decode_size(maps[MAPS.index("size")]) if len(maps) > MAPS.index("size") else None
 
 
 def torch_maps_fn(model: nn.Module, device: torch.device | str = "cpu", precision: str = "fp32"):
@@ -383,16 +437,32 @@ def torch_maps_fn(model: nn.Module, device: torch.device | str = "cpu", precisio
 # data
 
 
-def load_scenes(results_root: Path, rows: list[dict]) -> tuple[torch.Tensor, torch.Tensor]:
-    """uint8 N×3×H×W images and float32 N×3×H×W targets of manifest rows (all one size)."""
+def sizes_px_by_id(particles: dict[str, np.ndarray], mm_per_px: float) -> np.ndarray:
+    """True sieve size in pixels per mask id (= particle_id + 1; NaN where no particle) of one
+    scene's rows of `read_particles`."""
+    pid = np.asarray(particles["particle_id"], dtype=np.int64)
+    out = np.full(int(pid.max(initial=-1)) + 2, np.nan)
+    out[pid + 1] = np.asarray(particles["size_mm"], float) / float(mm_per_px)
+    return out
+
+
+def load_scenes(results_root: Path, rows: list[dict],
+                particles: dict[str, dict[str, np.ndarray]] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """uint8 N×3×H×W images and float32 N×C×H×W targets (MAPS; the size map with `particles`,
+    `read_particles` of the rows' dataset) of manifest rows (all one size)."""
     xs, ts = [], []
     for r in rows:
         img = read_png(Path(results_root) / r["image_path"])
         mask = read_png(Path(results_root) / r["mask_path"])
         if img.shape[:2] != mask.shape:
             raise PsdError(f"{r['scene_id']}: image {img.shape[:2]} and mask {mask.shape} differ in size")
+        sizes = None
+        if particles is not None:
+            if r["scene_id"] not in particles:
+                raise PsdError(f"the particle manifest has no rows for {r['scene_id']}")
+            sizes = sizes_px_by_id(particles[r["scene_id"]], float(r["mm_per_px"]))
         xs.append(torch.from_numpy(np.array(img, dtype=np.uint8, copy=True)).permute(2, 0, 1))
-        ts.append(target_stack(mask))
+        ts.append(target_stack(mask, sizes))
     if len({tuple(x.shape) for x in xs}) > 1:
         raise PsdError("the instance estimator trains on images of one size; this dataset mixes sizes")
     return torch.stack(xs), torch.stack(ts)
@@ -457,7 +527,8 @@ def net_from_meta(meta: dict) -> InstanceNet:
     """An untrained InstanceNet of the shape a model file's meta describes."""
     if meta.get("trunk", TRUNK) != TRUNK:
         raise PsdError(f"unknown trunk {meta.get('trunk')!r} for {ARCH}")
-    return InstanceNet(decoder=tuple(meta.get("decoder", DECODER)), full=int(meta.get("full_res_channels", FULL_RES)))
+    return InstanceNet(decoder=tuple(meta.get("decoder", DECODER)), full=int(meta.get("full_res_channels", FULL_RES)),
+                       n_maps=len(meta.get("maps", MASK_MAPS)))
 
 
 def readout_problems(meta: dict) -> list[str]:
@@ -485,16 +556,27 @@ def readout_problems(meta: dict) -> list[str]:
     if not isinstance(post, dict) or not all(num(post.get(k)) for k in ("threshold", "h", "min_distance",
                                                                           "min_area_px")):
         problems.append("postprocess is missing or not valid")
+    maps = meta.get("maps", list(MASK_MAPS))
+    if not (isinstance(maps, list) and tuple(maps) in (MASK_MAPS, MAPS)):
+        problems.append(f"maps must be {list(MASK_MAPS)} or {list(MAPS)}")
     if meta.get("sieve_method") not in SIEVE_METHODS:
         problems.append(f"sieve_method must be one of {', '.join(SIEVE_METHODS)}")
+    elif meta["sieve_method"] == "size_map" and (not isinstance(maps, list) or "size" not in maps):
+        problems.append("sieve_method 'size_map' needs a network that predicts the size map")
     ro = meta.get("readout")
     if ro is not None:
-        nf = len(STAT_NAMES)
-        ok = (isinstance(ro, dict) and all(nums(ro.get(k), nf) for k in ("impute", "mean", "scale"))
-              and isinstance(ro.get("weights"), list) and len(ro["weights"]) == nf + 1
-              and all(nums(w, 3) for w in ro["weights"]))
-        if not ok:
-            problems.append(f"readout must hold impute/mean/scale ({nf} numbers each) and weights ({nf + 1} × 3)")
+        feats = ro.get("features") if isinstance(ro, dict) else None
+        if not (isinstance(feats, list) and feats and all(f in STAT_NAMES for f in feats)):
+            problems.append(f"readout.features must name instance statistics ({', '.join(STAT_NAMES)}); "
+                            "a model from an older psdfactory: train it again")
+        else:
+            nf = len(feats)
+            ok = (all(nums(ro.get(k), nf) for k in ("impute", "mean", "scale"))
+                  and isinstance(ro.get("weights"), list) and len(ro["weights"]) == nf + 1
+                  and all(nums(w, 3) for w in ro["weights"]))
+            if not ok:
+                problems.append(f"readout must hold impute/mean/scale ({nf} numbers each) and weights "
+                                f"({nf + 1} × 3)")
     return problems
 
 

@@ -81,7 +81,12 @@ from scipy import ndimage
 from .. import PsdError
 from ..psd import cumulative_curve, weighted_percentiles
 
-SIEVE_METHODS = ("min_feret", "ellipse_minor")
+# Sieve-size estimates of a measured instance: from its visible footprint ("min_feret",
+# "ellipse_minor"), or "size_map": the median over its pixels of a per-pixel estimate of the size
+# of the particle each pixel belongs to (the instance network's size map: it sees a partly hidden
+# grain's outline, shading and texture and estimates the whole grain, not the visible part).
+MASK_METHODS = ("min_feret", "ellipse_minor")
+SIEVE_METHODS = (*MASK_METHODS, "size_map")
 DEFAULT_SIEVE_METHOD = "min_feret"
 # Effective thickness / width of a particle lying flat, for the ellipsoid volume. Chosen so the
 # volume of the factory's crushed rock comes out unbiased: estimated / true volume median 0.99
@@ -115,6 +120,11 @@ class InstanceMeasurements:
     mm_per_px: float
     image_shape: tuple[int, int]
     thickness_ratio: float
+    size_map_mm: np.ndarray | None = None  # median of a size map over each instance (measure_instances)
+
+    def methods(self) -> tuple[str, ...]:
+        """The sieve-size methods these measurements can answer."""
+        return SIEVE_METHODS if self.size_map_mm is not None else MASK_METHODS
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -252,11 +262,14 @@ def measure_instances(
     mm_per_px: float,
     thickness_ratio: float = THICKNESS_RATIO,
     volume_from: str = DEFAULT_SIEVE_METHOD,
+    size_map_px: np.ndarray | None = None,
 ) -> InstanceMeasurements:
     """Measure every instance of `mask` (0 = background, k >= 1 = one particle) in mm.
 
     `volume_mm3` = 2/3 * area_mm2 * thickness_ratio * (sieve-size estimate `volume_from`): an
     ellipsoid standing on the footprint with its thickness a fixed fraction of its width.
+    `size_map_px` (H×W, the estimated size in pixels of the particle each pixel belongs to): its
+    median over each instance, in mm, becomes `size_map_mm` (the "size_map" sieve method).
     """
     mask = _check_mask(mask)
     if not mm_per_px > 0:
@@ -265,6 +278,10 @@ def measure_instances(
         raise PsdError(f"thickness_ratio must be positive, got {thickness_ratio}")
     if volume_from not in SIEVE_METHODS:
         raise PsdError(f"unknown sieve-size method {volume_from!r}; choose one of {', '.join(SIEVE_METHODS)}")
+    if size_map_px is not None and np.shape(size_map_px) != mask.shape:
+        raise PsdError(f"size map {np.shape(size_map_px)} and mask {mask.shape} differ in size")
+    if volume_from == "size_map" and size_map_px is None:
+        raise PsdError("sieve method 'size_map' needs the network's size map")
     h, w = mask.shape
     ids, area, lookup = _compact(mask)
     n = len(ids)
@@ -290,7 +307,10 @@ def measure_instances(
 
     s = float(mm_per_px)
     area_mm2 = a * s * s
-    width = (fmin if volume_from == "min_feret" else minor) * s
+    amodal = None
+    if size_map_px is not None:
+        amodal = instance_medians(np.asarray(size_map_px, dtype=np.float64)[r, c], k, n) * s
+    width = {"min_feret": fmin * s, "ellipse_minor": minor * s, "size_map": amodal}[volume_from]
     return InstanceMeasurements(
         ids=ids,
         area_px=area.astype(np.int64),
@@ -307,7 +327,24 @@ def measure_instances(
         mm_per_px=s,
         image_shape=(h, w),
         thickness_ratio=float(thickness_ratio),
+        size_map_mm=amodal,
     )
+
+
+def instance_medians(values: np.ndarray, group: np.ndarray, n: int) -> np.ndarray:
+    """Median of `values` within each of `n` groups (group index per value; NaN for an empty one)."""
+    out = np.full(n, np.nan)
+    if not len(values):
+        return out
+    order = np.lexsort((values, group))
+    v, g = values[order], group[order]
+    counts = np.bincount(g, minlength=n)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    has = counts > 0
+    lo = start + (counts - 1) // 2
+    hi = start + counts // 2
+    out[has] = (v[lo[has]] + v[hi[has]]) / 2
+    return out
 
 
 def sieve_size(measurements: InstanceMeasurements, method: str = DEFAULT_SIEVE_METHOD) -> np.ndarray:
@@ -323,6 +360,10 @@ def sieve_size(measurements: InstanceMeasurements, method: str = DEFAULT_SIEVE_M
         return measurements.min_feret_mm
     if method == "ellipse_minor":
         return measurements.ellipse_minor_mm
+    if method == "size_map":
+        if measurements.size_map_mm is None:
+            raise PsdError("sieve method 'size_map' needs measurements made with the network's size map")
+        return measurements.size_map_mm
     raise PsdError(f"unknown sieve-size method {method!r}; choose one of {', '.join(SIEVE_METHODS)}")
 
 
@@ -485,12 +526,15 @@ STAT_NAMES = (
     "d90_v_mm",
     "mean_mm",
     "std_mm",
-    "log_count",
-    "log_count_all",
+    "log_density",
+    "log_density_all",
     "covered_fraction",
     "edge_fraction",
     "mm_per_px",
 )
+# The statistics a read-out may use: those that do not change with the field of view (a larger
+# image of the same bed has more instances and fewer of them on its edge) or with the camera.
+READOUT_FEATURES = STAT_NAMES[:-2]
 
 
 def instance_stats(
@@ -504,8 +548,8 @@ def instance_stats(
     Size statistics (number- and volume-weighted d10/d50/d90, mean and sd of the sieve-size
     estimate) use the instances not touching the image edge (all with `include_edge`); when
     every instance touches the edge they fall back to all instances, and with no instance at
-    all they are `fill_value` (NaN by default: impute before fitting). Counts are log(1 + n)
-    of the included and of all instances; `covered_fraction` is the share of image pixels in
+    all they are `fill_value` (NaN by default: impute before fitting). Densities are log(1 + n
+    per cm² of image) of the included and of all instances; `covered_fraction` is the share of image pixels in
     an instance, `edge_fraction` the share of instances touching the edge (0 with none), and
     `mm_per_px` the scale (it sets the size of the smallest visible particle).
     """
@@ -525,8 +569,9 @@ def instance_stats(
         out["std_mm"] = float(s.std())
     h, w = measurements.image_shape
     n_inc = int((~measurements.touches_edge).sum()) if not include_edge else n_all
-    out["log_count"] = float(np.log1p(n_inc))
-    out["log_count_all"] = float(np.log1p(n_all))
+    cm2 = max(h * w, 1) * measurements.mm_per_px**2 / 100.0
+    out["log_density"] = float(np.log1p(n_inc / cm2))
+    out["log_density_all"] = float(np.log1p(n_all / cm2))
     out["covered_fraction"] = float(measurements.area_px.sum() / max(h * w, 1))
     out["edge_fraction"] = float(measurements.touches_edge.mean()) if n_all else 0.0
     out["mm_per_px"] = float(measurements.mm_per_px)
