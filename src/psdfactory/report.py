@@ -150,9 +150,11 @@ def instance_table(metrics: dict[str, dict], datasets: list[str]) -> tuple[list[
     """The instance estimator's own figures per dataset: calibrated vs raw R², segmentation
     precision / recall / F1 at IoU 0.5, and the size error of matched particles; empty without
     an instance model."""
+    from .learn.particles import SIEVE_METHODS
+
     head = (["model", "dataset"] + [f"R² {n} calibrated" for n in NAMES] + [f"R² {n} raw" for n in NAMES]
-            + ["precision", "recall", "F1", "size error median", "size error p90",
-               "fully visible: min Feret median / p90", "fully visible: ellipse minor median / p90"])
+            + ["precision", "recall", "F1", "size error median", "size error p90"]
+            + [f"fully visible: {m.replace('_', ' ')} median / p90" for m in SIEVE_METHODS])
     rows = []
 
     def pct(e: dict | None) -> str:
@@ -170,18 +172,21 @@ def instance_table(metrics: dict[str, dict], datasets: list[str]) -> tuple[list[
                         + [_fmt(seg["precision"], 3), _fmt(seg["recall"], 3), _fmt(seg["f1"], 3),
                            "–" if not matched["n"] else f"{100 * matched['median']:.1f} %",
                            "–" if not matched["n"] else f"{100 * matched['p90']:.1f} %",
-                           pct(vis.get("min_feret")), pct(vis.get("ellipse_minor"))])
+                           *(pct(vis.get(meth)) for meth in SIEVE_METHODS)])
     return head, rows
 
 
 INSTANCE_NOTE = ("The instance estimator segments every particle (a ResNet-18-trunk encoder-decoder predicting "
-                 "foreground, boundary and distance maps, then a watershed), measures each one, and reads "
+                 "foreground, boundary, distance and size maps, then a watershed), measures each one, and reads "
                  "d10/d50/d90 off the measured particles: 'raw' = the number-weighted percentiles of the particles "
                  "not touching the image edge; 'calibrated' = a ridge read-out from the instance statistics to the "
                  "labels fitted on the training split (the camera cannot see the hidden fines) — the figure the "
                  "accuracy table shows. Precision / recall / F1: predicted vs true instances matched one-to-one at IoU "
                  "≥ 0.5. Size error: |estimated − true sieve size| / true size of matched particles not touching the "
-                 "edge; 'fully visible' also excludes any particle bordering a higher one (it may be partly hidden).")
+                 "edge, with the model's sieve method; 'fully visible' also excludes any particle bordering a higher "
+                 "one (it may be partly hidden), per method: min Feret diameter and ellipse minor axis of the "
+                 "footprint, and the size map (the network's estimate of the whole particle, median over the "
+                 "instance).")
 
 
 def fast_path_rule(bench: dict[str, dict]) -> str:
