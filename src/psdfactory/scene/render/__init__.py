@@ -2,8 +2,9 @@
 
 Backends (``render.backend``): ``tiny`` (pybullet's TinyRenderer, fast, ``tiny.py``) and
 ``cycles`` (Blender, photorealistic, ``cycles.py``). Both see the same camera, the same look
-(particle colours, light direction, table colour) drawn from the scene's render stream, and the
-same sensor model (``look.py``). ``render_scene`` below runs the configured one.
+(particle colours and textures, light direction and colour, table colour and texture, field of
+view) drawn from the scene's render and look streams, and the same sensor model
+(``look.py``). ``render_scene`` below runs the configured one.
 
 ``blender_job.py`` is not a module of the host: it is the script that Blender's own Python
 runs (``python -P blender_job.py JOB_DIR``), shipped as package data beside ``cycles.py``.
@@ -38,8 +39,8 @@ def render_scene(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.n
     if n > MAX_PARTICLES_16BIT:
         raise PsdError(f"{n} particles do not fit a 16-bit mask (max {MAX_PARTICLES_16BIT})")
     rng = rng_for(entropy, "render")
-    px_mm = mm_per_px(float(spec["table_size"]), p.resolution)
-    look = draw_look(rng, p, n)  # the same look (colours, light) for every backend
+    look = draw_look(rng, p, n, rng_for(entropy, "look"))  # the same look (colours, light, view) for every backend
+    px_mm = mm_per_px(float(spec["table_size"]), p.resolution, look.view_fraction)
     rgb, mask, extra = BACKENDS[p.backend](spec, geometry, pos_mm, quats, p, look, rng)
     image = apply_sensor(rgb, look, p, rng)
     look_meta = {k: v for k, v in asdict(look).items() if k != "particle_rgb"}
@@ -49,8 +50,9 @@ def render_scene(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.n
         **extra,
         "mm_per_px": px_mm,
         "table_size_mm": float(spec["table_size"]),
+        "view_mm": px_mm * p.resolution,
         "camera_height_mm": p.camera_height_mm,
-        "image_origin": "row 0 = +y edge of the table, column 0 = -x edge",
+        "image_origin": "centred on the table; row 0 = +y edge of the view, column 0 = -x edge",
         "look": look_meta,
     }
     return image, mask, meta

@@ -54,36 +54,54 @@ def choose_device(scene, want: str) -> str:
     return "CPU"
 
 
-def particle_material(detail: float, bump_mm: float):
-    """One material for every particle: colour and roughness per object (Object Info colour,
-    'roughness' property), a noise bump for surface detail and a little colour mottling."""
+def object_attribute(nt, name: str):
+    node = nt.nodes.new("ShaderNodeAttribute")
+    node.attribute_type = "OBJECT"
+    node.attribute_name = name
+    return node
+
+
+def math_node(nt, operation: str, a, b=None, c=None):
+    """A Math node: each input a socket (linked) or a number."""
+    node = nt.nodes.new("ShaderNodeMath")
+    node.operation = operation
+    for i, v in enumerate((a, b, c)):
+        if v is None:
+            continue
+        if isinstance(v, (int, float)):
+            node.inputs[i].default_value = float(v)
+        else:
+            nt.links.new(v, node.inputs[i])
+    return node.outputs["Value"]
+
+
+def particle_material(bump_mm: float):
+    """One material for every particle: colour, roughness and texture amplitude per object
+    (Object Info colour, 'roughness' and 'detail' properties), a noise bump for surface detail
+    and a little colour mottling, both scaled by the particle's detail."""
     m = bpy.data.materials.new("particle")
     m.use_nodes = True
     nt = m.node_tree
     bsdf = nt.nodes["Principled BSDF"]
     info = nt.nodes.new("ShaderNodeObjectInfo")
-    rough = nt.nodes.new("ShaderNodeAttribute")
-    rough.attribute_type = "OBJECT"
-    rough.attribute_name = "roughness"
+    rough = object_attribute(nt, "roughness")
+    detail = object_attribute(nt, "detail").outputs["Fac"]
     coord = nt.nodes.new("ShaderNodeTexCoord")
     noise = nt.nodes.new("ShaderNodeTexNoise")
     noise.inputs["Scale"].default_value = 1.0 / (bump_mm * MM)
     noise.inputs["Detail"].default_value = 6.0
     nt.links.new(coord.outputs["Object"], noise.inputs["Vector"])
     bump = nt.nodes.new("ShaderNodeBump")
-    bump.inputs["Strength"].default_value = min(1.0, 4 * detail)
+    nt.links.new(math_node(nt, "MINIMUM", math_node(nt, "MULTIPLY", detail, 4.0), 1.0), bump.inputs["Strength"])
     bump.inputs["Distance"].default_value = bump_mm * MM
     nt.links.new(noise.outputs["Fac"], bump.inputs["Height"])
     nt.links.new(bump.outputs["Normal"], bsdf.inputs["Normal"])
-    mottle = nt.nodes.new("ShaderNodeMath")
-    mottle.operation = "MULTIPLY_ADD"  # 1 + detail * (2 * noise - 1)
-    mottle.inputs[1].default_value = 2 * detail
-    mottle.inputs[2].default_value = 1 - detail
-    nt.links.new(noise.outputs["Fac"], mottle.inputs[0])
+    # mottling: 1 + detail * (2 * noise - 1)
+    mottle = math_node(nt, "MULTIPLY_ADD", math_node(nt, "MULTIPLY_ADD", noise.outputs["Fac"], 2.0, -1.0), detail, 1.0)
     tint = nt.nodes.new("ShaderNodeVectorMath")
     tint.operation = "SCALE"
     nt.links.new(info.outputs["Color"], tint.inputs[0])
-    nt.links.new(mottle.outputs["Value"], tint.inputs["Scale"])
+    nt.links.new(mottle, tint.inputs["Scale"])
     nt.links.new(tint.outputs["Vector"], bsdf.inputs["Base Color"])
     nt.links.new(rough.outputs["Fac"], bsdf.inputs["Roughness"])
     return m
@@ -177,11 +195,11 @@ def build_scene(job: dict, arrays) -> str:
     scene.collection.objects.link(table)
 
     # particles: one object each (the object-index pass needs objects), one shared material
-    mat = particle_material(job["surface_detail"], job["bump_mm"])
+    mat = particle_material(job["bump_mm"])
     v, f = arrays["vertices"] * MM, arrays["faces"]
     vo, fo = arrays["vert_offsets"], arrays["face_offsets"]
     pos, quat = arrays["positions_mm"] * MM, arrays["quats_xyzw"]
-    rgb, rough = srgb_to_linear(arrays["rgb"]), arrays["roughness"]
+    rgb, rough, detail = srgb_to_linear(arrays["rgb"]), arrays["roughness"], arrays["detail"]
     for i in range(len(pos)):
         mesh = add_mesh(f"p{i}", v[vo[i] : vo[i + 1]], f[fo[i] : fo[i + 1]], job["smooth"])
         mesh.materials.append(mat)
@@ -193,11 +211,13 @@ def build_scene(job: dict, arrays) -> str:
         ob.pass_index = i + 1
         ob.color = (*rgb[i], 1.0)
         ob["roughness"] = float(rough[i])
+        ob["detail"] = float(detail[i])
         scene.collection.objects.link(ob)
 
-    # sun from the drawn direction, plus a uniform sky
+    # sun from the drawn direction and colour, plus a uniform sky
     sun = bpy.data.lights.new("sun", "SUN")
     sun.energy = float(job["sun_strength"])
+    sun.color = tuple(job["light_rgb"])  # a multiplier of the sun's energy per channel
     sun.angle = math.radians(job["sun_angle_deg"])
     sun_ob = bpy.data.objects.new("sun", sun)
     sun_ob.rotation_mode = "QUATERNION"

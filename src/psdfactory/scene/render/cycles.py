@@ -44,8 +44,6 @@ class CyclesParams:
     sun_angle_deg: Range  # apparent size of the sun: soft shadow edges
     sky_strength: Range
     sky_rgb: tuple[float, float, float]
-    bump_mm: float  # scale of the particles' surface detail
-    grain_mm: float  # scale of the table's texture
     timeout_s: float
 
     @classmethod
@@ -83,6 +81,36 @@ def draw_cycles_look(rng: np.random.Generator, c: CyclesParams, n: int) -> dict:
     }
 
 
+def cycles_job(spec: dict, geometry, pos_mm: np.ndarray, p, look, extra: dict) -> dict:
+    """The scene as Blender's job reads it (scene.json): camera, table, lights, materials —
+    everything of the shared look that Cycles renders, and what it draws itself (`extra`)."""
+    c = p.cycles
+    T = float(spec["table_size"])
+    H = p.camera_height_mm
+    top = float(np.nanmax(pos_mm[:, 2]) + geometry.dims_mm[:, 0].max()) if len(geometry) else 1.0
+    return {
+        "resolution": p.resolution,
+        "camera_height_mm": H,
+        "fov_deg": math.degrees(2 * math.atan(T * look.view_fraction / 2 / H)),
+        "top_mm": top + 10.0,
+        "table_size_mm": T,
+        "table_rgb": look.table_rgb,
+        "table_texture": look.table_texture,
+        "grain_mm": look.table_grain_mm,
+        "bump_mm": look.particle_grain_mm,
+        "smooth": spec["shape_type"] in ("granule", "ellipsoid"),
+        "light_dir": look.light_dir,
+        "light_rgb": look.light_rgb,
+        "sun_strength": extra["sun_strength"] * look.light_intensity,
+        "sun_angle_deg": extra["sun_angle_deg"],
+        "sky_rgb": list(c.sky_rgb),
+        "sky_strength": extra["sky_strength"],
+        "seed": extra["seed"],
+        "cycles": {"samples": c.samples, "denoise": c.denoise, "max_bounces": c.max_bounces,
+                   "device": c.device, "threads": c.threads},
+    }
+
+
 def render_cycles(spec: dict, geometry, pos_mm: np.ndarray, quats: np.ndarray, p, look, rng: np.random.Generator):
     """→ (rgb float32 HxWx3 in [0,1] before the sensor model, uint16 mask, extra metadata)."""
     c = p.cycles
@@ -92,30 +120,7 @@ def render_cycles(spec: dict, geometry, pos_mm: np.ndarray, quats: np.ndarray, p
                        "use the tiny backend")
     py = blender_python()
     extra = draw_cycles_look(rng, c, n)
-    T = float(spec["table_size"])
-    H = p.camera_height_mm
-    top = float(np.nanmax(pos_mm[:, 2]) + geometry.dims_mm[:, 0].max()) if n else 1.0
-    job = {
-        "resolution": p.resolution,
-        "camera_height_mm": H,
-        "fov_deg": math.degrees(2 * math.atan(T / 2 / H)),
-        "top_mm": top + 10.0,
-        "table_size_mm": T,
-        "table_rgb": look.table_rgb,
-        "table_texture": p.table_texture,
-        "surface_detail": p.surface_detail,
-        "bump_mm": c.bump_mm,
-        "grain_mm": c.grain_mm,
-        "smooth": spec["shape_type"] in ("granule", "ellipsoid"),
-        "light_dir": look.light_dir,
-        "sun_strength": extra["sun_strength"] * look.light_intensity,
-        "sun_angle_deg": extra["sun_angle_deg"],
-        "sky_rgb": list(c.sky_rgb),
-        "sky_strength": extra["sky_strength"],
-        "seed": extra["seed"],
-        "cycles": {"samples": c.samples, "denoise": c.denoise, "max_bounces": c.max_bounces,
-                   "device": c.device, "threads": c.threads},
-    }
+    job = cycles_job(spec, geometry, pos_mm, p, look, extra)
     with tempfile.TemporaryDirectory(prefix="psd-cycles-") as tmp:
         d = Path(tmp)
         (d / "scene.json").write_text(json.dumps(job))
@@ -125,6 +130,7 @@ def render_cycles(spec: dict, geometry, pos_mm: np.ndarray, quats: np.ndarray, p
             vert_offsets=geometry.vert_offsets, face_offsets=geometry.face_offsets,
             positions_mm=np.asarray(pos_mm, dtype=np.float64), quats_xyzw=np.asarray(quats, dtype=np.float64),
             rgb=look.particle_rgb, roughness=extra["roughness"],
+            detail=np.asarray(look.surface_detail, dtype=np.float64),
         )
         try:
             r = subprocess.run([str(py), "-P", str(SCRIPT), str(d)], capture_output=True, text=True,

@@ -1,6 +1,6 @@
 """The fast default render backend, ``tiny``: pybullet's TinyRenderer, CPU-only, whose cost is
-per pixel. A far camera with a narrow field of view gives a metric top-down view in which the
-table exactly fills the image, so ``mm_per_px = table_size / resolution``.
+per pixel. A far camera with a narrow field of view gives a metric top-down view of the
+table's centre `view_fraction` of its side across, so ``mm_per_px = table_size * view / resolution``.
 TinyRenderer has no anti-aliasing and no working cast shadows, so the image is supersampled
 and shadows / contact occlusion are shaded afterwards from the depth buffer.
 Mask values: 0 = table, k = particle_id + 1.
@@ -68,12 +68,25 @@ def shade_from_height(height: np.ndarray, px_mm: float, light_dir: list[float], 
     return shadow.astype(np.float32)
 
 
-def fractal_noise(rng: np.random.Generator, shape: tuple[int, int], scales_px: tuple[float, ...]) -> np.ndarray:
-    out = np.zeros(shape, dtype=np.float32)
-    for s in scales_px:
-        layer = ndimage.gaussian_filter(rng.standard_normal(shape).astype(np.float32), s)
+# the Gaussian sigmas of the texture's two octaves, in units of its grain (mm)
+TEXTURE_OCTAVES = (0.4, 1.6)
+
+
+def white_layers(rng: np.random.Generator, shape: tuple[int, int], n: int = len(TEXTURE_OCTAVES)) -> list[np.ndarray]:
+    return [rng.standard_normal(shape).astype(np.float32) for _ in range(n)]
+
+
+def fractal_noise(layers: list[np.ndarray], sigmas_px: tuple[float, ...]) -> np.ndarray:
+    """Unit-variance octaves of smoothed white noise, averaged: a grainy texture."""
+    out = np.zeros(layers[0].shape, dtype=np.float32)
+    for white, s in zip(layers, sigmas_px, strict=True):
+        layer = ndimage.gaussian_filter(white, s)
         out += layer / (layer.std() + 1e-6)
-    return out / len(scales_px)
+    return out / len(sigmas_px)
+
+
+def octaves_px(grain_mm: float, px_mm: float, supersample: int) -> tuple[float, ...]:
+    return tuple(f * grain_mm / px_mm * supersample for f in TEXTURE_OCTAVES)
 
 
 def tiny_raw(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams, look: Look):
@@ -110,7 +123,7 @@ def tiny_raw(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarr
             body_to_label[body] = i + 1
 
         H = p.camera_height_mm * CM
-        fov = math.degrees(2 * math.atan(half / H))
+        fov = math.degrees(2 * math.atan(half * look.view_fraction / H))
         top = float(np.nanmax(pos_mm[:, 2])) + float(geometry.dims_mm[:, 0].max()) if n else 1.0
         near, far = H - (top * CM + 1.0), H + 1.0
         view = pb.computeViewMatrix([0, 0, H], [0, 0, 0], [0, 1, 0], physicsClientId=cid)
@@ -121,7 +134,7 @@ def tiny_raw(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarr
             view,
             proj,
             lightDirection=look.light_dir,
-            lightColor=[1, 1, 1],
+            lightColor=look.light_rgb,  # the key light's; TinyRenderer keeps the ambient white
             lightDistance=100,
             shadow=0,
             lightAmbientCoeff=look.ambient,
@@ -149,7 +162,8 @@ def render_tiny(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.nd
                 look: Look, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, dict]:
     """The fast backend → (rgb float32 HxWx3 in [0,1] before the sensor, uint16 mask, extra metadata)."""
     rgb, ids, height = tiny_raw(spec, geometry, pos_mm, quats, p, look)
-    rgb = shade_tiny(rgb, ids, height, look, p, mm_per_px(float(spec["table_size"]), p.resolution), rng)
+    px_mm = mm_per_px(float(spec["table_size"]), p.resolution, look.view_fraction)
+    rgb = shade_tiny(rgb, ids, height, look, p, px_mm, rng)
     s = p.supersample
     mask = ids[s // 2 :: s, s // 2 :: s].astype(np.uint16)  # each block's centre sample: exact ids
     return rgb, mask, {"supersample": s}
@@ -167,9 +181,12 @@ def shade_tiny(rgb: np.ndarray, ids: np.ndarray, height: np.ndarray, look: Look,
                rng: np.random.Generator) -> np.ndarray:
     """Texture, anti-aliasing, cast shadows and contact occlusion for the TinyRenderer image."""
     s = p.supersample
-    # surface texture: table grain on table pixels, fine mottling on particles
-    tex = fractal_noise(rng, ids.shape, (1.0 * s, 4.0 * s))
-    amp = np.where(ids == 0, p.table_texture, p.surface_detail).astype(np.float32)
+    # surface texture: the table's grain on table pixels, each particle's mottling on its own
+    layers = white_layers(rng, ids.shape)
+    table = ids == 0
+    tex = np.where(table, fractal_noise(layers, octaves_px(look.table_grain_mm, px_mm, s)),
+                   fractal_noise(layers, octaves_px(look.particle_grain_mm, px_mm, s)))
+    amp = np.asarray([look.table_texture, *look.surface_detail], dtype=np.float32)[ids]
     rgb = rgb * (1 + amp * tex)[..., None]
     rgb = downsample(rgb, s)
     hgt = downsample(height, s)
