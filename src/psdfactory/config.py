@@ -224,8 +224,8 @@ def semantic_problems(config: dict) -> list[str]:
                                                 for n, ds in config["datasets"].items() if "render" in ds]
     for key, r in renders:
         for k in ("light_elevation_deg", "exposure", "blur_px", "noise_sigma", "ambient", "view_fraction",
-                  "surface_detail", "particle_grain_mm", "table_texture", "table_grain_mm", "light_tint",
-                  "jpeg_quality"):
+                  "surface_detail", "particle_grain_mm", "table_texture", "table_grain_mm", "ground_level_mm",
+                  "light_tint", "jpeg_quality"):
             _ordered(f"{key}.{k}", r[k], problems)
         lo, hi = r["light_elevation_deg"]
         if not (0 < lo and hi <= 90):

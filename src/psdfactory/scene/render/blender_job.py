@@ -24,6 +24,10 @@ import numpy as np
 from mathutils import Vector
 
 MM = 0.001  # Blender unit (m) per mm
+# The standard deviation of the Noise Texture's Fac about its mean 0.5 (measured on Blender 4.5,
+# Detail 6 and 8): the textures divide by it, so that a texture amplitude means the same as in
+# the fast backend — the standard deviation of the relative brightness.
+NOISE_STD = 0.073
 
 
 def srgb_to_linear(c):
@@ -78,7 +82,7 @@ def math_node(nt, operation: str, a, b=None, c=None):
 def particle_material(bump_mm: float):
     """One material for every particle: colour, roughness and texture amplitude per object
     (Object Info colour, 'roughness' and 'detail' properties), a noise bump for surface detail
-    and a little colour mottling, both scaled by the particle's detail."""
+    and colour mottling of standard deviation `detail` (relative), as the fast backend's."""
     m = bpy.data.materials.new("particle")
     m.use_nodes = True
     nt = m.node_tree
@@ -96,8 +100,9 @@ def particle_material(bump_mm: float):
     bump.inputs["Distance"].default_value = bump_mm * MM
     nt.links.new(noise.outputs["Fac"], bump.inputs["Height"])
     nt.links.new(bump.outputs["Normal"], bsdf.inputs["Normal"])
-    # mottling: 1 + detail * (2 * noise - 1)
-    mottle = math_node(nt, "MULTIPLY_ADD", math_node(nt, "MULTIPLY_ADD", noise.outputs["Fac"], 2.0, -1.0), detail, 1.0)
+    # mottling: 1 + detail * z, z = the noise at unit standard deviation
+    z = math_node(nt, "MULTIPLY_ADD", noise.outputs["Fac"], 1 / NOISE_STD, -0.5 / NOISE_STD)
+    mottle = math_node(nt, "MAXIMUM", math_node(nt, "MULTIPLY_ADD", z, detail, 1.0), 0.0)
     tint = nt.nodes.new("ShaderNodeVectorMath")
     tint.operation = "SCALE"
     nt.links.new(info.outputs["Color"], tint.inputs[0])
@@ -116,12 +121,18 @@ def table_material(rgb, texture: float, grain_mm: float):
     noise = nt.nodes.new("ShaderNodeTexNoise")
     noise.inputs["Scale"].default_value = 1.0 / (grain_mm * MM)
     noise.inputs["Detail"].default_value = 8.0
+    # colour = rgb * (1 + texture * z), z = the noise at unit standard deviation, over ±3 sd
+    spread = nt.nodes.new("ShaderNodeMapRange")
+    spread.clamp = True
+    spread.inputs["From Min"].default_value = 0.5 - 3 * NOISE_STD
+    spread.inputs["From Max"].default_value = 0.5 + 3 * NOISE_STD
+    nt.links.new(noise.outputs["Fac"], spread.inputs["Value"])
     ramp = nt.nodes.new("ShaderNodeValToRGB")
-    lo = srgb_to_linear(np.clip(np.asarray(rgb) * (1 - 2 * texture), 0, 1))
-    hi = srgb_to_linear(np.clip(np.asarray(rgb) * (1 + 2 * texture), 0, 1))
+    lo = srgb_to_linear(np.clip(np.asarray(rgb) * (1 - 3 * texture), 0, 1))
+    hi = srgb_to_linear(np.clip(np.asarray(rgb) * (1 + 3 * texture), 0, 1))
     ramp.color_ramp.elements[0].color = (*lo, 1)
     ramp.color_ramp.elements[1].color = (*hi, 1)
-    nt.links.new(noise.outputs["Fac"], ramp.inputs["Fac"])
+    nt.links.new(spread.outputs["Result"], ramp.inputs["Fac"])
     nt.links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
     bump = nt.nodes.new("ShaderNodeBump")
     bump.inputs["Strength"].default_value = 0.3
@@ -185,9 +196,11 @@ def build_scene(job: dict, arrays) -> str:
     scene.collection.objects.link(cam)
     scene.camera = cam
 
-    # table: a textured plane larger than the view, top at z = 0
+    # table: a textured plane larger than the view, at the ground level (0: the floor the
+    # particles lie on; above it, the ground buries their lower parts)
     T = job["table_size_mm"] * 1.5 * MM / 2
-    corners = np.array([[-T, -T, 0], [T, -T, 0], [T, T, 0], [-T, T, 0]])
+    z = job["ground_mm"] * MM
+    corners = np.array([[-T, -T, z], [T, -T, z], [T, T, z], [-T, T, z]])
     table_mesh = add_mesh("table", corners, np.array([[0, 1, 2], [0, 2, 3]]), False)
     table = bpy.data.objects.new("table", table_mesh)
     table.pass_index = 0

@@ -96,6 +96,7 @@ def cycles_job(spec: dict, geometry, pos_mm: np.ndarray, p, look, extra: dict) -
         "table_size_mm": T,
         "table_rgb": look.table_rgb,
         "table_texture": look.table_texture,
+        "ground_mm": look.ground_level_mm,
         "grain_mm": look.table_grain_mm,
         "bump_mm": look.particle_grain_mm,
         "smooth": spec["shape_type"] in ("granule", "ellipsoid"),

@@ -50,6 +50,7 @@ class RenderParams:
     table_brightness: Range
     table_texture: Range
     table_grain_mm: Range
+    ground_level_mm: Range  # the table's (ground's) top above the bed's floor: buries the particles' feet
     light_tint: Range  # -1 cool … 0 white … 1 warm
     # camera / sensor
     view_fraction: Range  # side of the view / table side
@@ -103,6 +104,7 @@ class Look:
     view_fraction: float
     table_texture: float
     table_grain_mm: float
+    ground_level_mm: float
     particle_grain_mm: float
     light_tint: float
     light_rgb: list[float]
@@ -133,6 +135,7 @@ class LookExtras:
     table_hue: np.ndarray
     table_texture: float
     table_grain_mm: float
+    ground_level_mm: float
     particle_grain_mm: float
     light_tint: float
     jpeg_quality: int | None
@@ -149,12 +152,12 @@ def draw_extras(rng: np.random.Generator, p: RenderParams, n: int) -> LookExtras
     view = u(p.view_fraction)
     table_index = int(rng.integers(max(len(p.table_palette), 1)))
     table_hue = 1 + rng.uniform(-p.table_hue_jitter, p.table_hue_jitter, size=3)
-    texture, table_grain, particle_grain, tint = (
-        u(p.table_texture), u(p.table_grain_mm), u(p.particle_grain_mm), u(p.light_tint))
+    texture, table_grain, ground, particle_grain, tint = (
+        u(p.table_texture), u(p.table_grain_mm), u(p.ground_level_mm), u(p.particle_grain_mm), u(p.light_tint))
     jpeg = rng.random() < p.jpeg_fraction
     quality = int(rng.integers(p.jpeg_quality[0], p.jpeg_quality[1] + 1))
     detail = rng.uniform(*p.surface_detail, size=n)
-    return LookExtras(view, table_index, table_hue, texture, table_grain, particle_grain, tint,
+    return LookExtras(view, table_index, table_hue, texture, table_grain, ground, particle_grain, tint,
                       quality if jpeg else None, detail)
 
 
@@ -188,6 +191,7 @@ def draw_look(rng: np.random.Generator, p: RenderParams, n: int, look_rng: np.ra
         light_dir, az, el, light_intensity, ambient, shadow, occlusion, table.tolist(), exposure, wb.tolist(),
         vignetting, blur, noise, shot,
         view_fraction=x.view_fraction, table_texture=x.table_texture, table_grain_mm=x.table_grain_mm,
+        ground_level_mm=x.ground_level_mm,
         particle_grain_mm=x.particle_grain_mm, light_tint=x.light_tint, light_rgb=tint_rgb(x.light_tint),
         jpeg_quality=x.jpeg_quality, surface_detail=np.round(x.surface_detail, 5).tolist(), particle_rgb=rgb,
     )

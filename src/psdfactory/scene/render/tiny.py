@@ -77,12 +77,13 @@ def white_layers(rng: np.random.Generator, shape: tuple[int, int], n: int = len(
 
 
 def fractal_noise(layers: list[np.ndarray], sigmas_px: tuple[float, ...]) -> np.ndarray:
-    """Unit-variance octaves of smoothed white noise, averaged: a grainy texture."""
+    """Octaves of smoothed white noise, summed and scaled to unit standard deviation: a grainy
+    texture whose amplitude (table_texture, surface_detail) is the sd of the relative brightness."""
     out = np.zeros(layers[0].shape, dtype=np.float32)
     for white, s in zip(layers, sigmas_px, strict=True):
         layer = ndimage.gaussian_filter(white, s)
         out += layer / (layer.std() + 1e-6)
-    return out / len(sigmas_px)
+    return out / (out.std() + 1e-6)
 
 
 def octaves_px(grain_mm: float, px_mm: float, supersample: int) -> tuple[float, ...]:
@@ -104,7 +105,8 @@ def tiny_raw(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarr
         table_vs = pb.createVisualShape(
             pb.GEOM_BOX, halfExtents=[half * 1.5, half * 1.5, 0.5], rgbaColor=[*look.table_rgb, 1], physicsClientId=cid
         )
-        table = pb.createMultiBody(0, -1, table_vs, basePosition=[0, 0, -0.5], physicsClientId=cid)
+        table = pb.createMultiBody(0, -1, table_vs, basePosition=[0, 0, look.ground_level_mm * CM - 0.5],
+                                   physicsClientId=cid)
         body_to_label = {table: 0}
         for i, (verts, idx, normals) in enumerate(meshes):
             vs = pb.createVisualShape(
