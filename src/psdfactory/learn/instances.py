@@ -3,14 +3,19 @@ it, then read the PSD off the measured particles.
 
 - **Network** (`InstanceNet`): a torchvision ResNet-18 trunk cut after ``layer2`` (stride 8;
   ImageNet weights with ``train.pretrained`` as for the CNNs) and a light U-Net decoder with skips
-  at strides 4, 2 and 1, predicting three maps at the input's resolution, any size: a foreground
-  logit, a boundary logit and a logit of the normalised distance to the instance's boundary.
+  at strides 4, 2 and 1, predicting four maps (MAPS) at the input's resolution, any size: a
+  foreground logit, a boundary logit, a logit of the normalised distance to the instance's
+  boundary and a logit of the size map.
 - **Targets** from ``mask.png`` (`instance_targets`): foreground = mask > 0; boundary = instance
   pixels with a 4-neighbour of another id (the background included); distance = each
   instance's own Euclidean distance transform divided by its maximum (1 at its centre, so a
-  3-px grain and a 30-px one get seeds alike).
+  3-px grain and a 30-px one get seeds alike); size (`size_target`) = the true sieve size in
+  pixels of the particle a pixel belongs to, from the particle manifest, log-encoded in [0, 1]
+  — however much of the particle is hidden, so the network learns to see a whole grain in a
+  part of it, and a merged or split instance still reads its grains' sizes.
 - **Loss** (`instance_loss`): BCE(foreground) + BCE(boundary, positive-weighted by the
-  background / boundary ratio of the training masks) + L1(distance) on foreground pixels.
+  background / boundary ratio of the training masks) + L1(distance) + L1(log2 size, in octaves)
+  on foreground pixels.
 - **Training** on random crops of the training split (``train.input_size.instances`` px) with
   flips / 90° rotations applied to image and targets alike and the photometric jitter of
   `augment.photometric` on the image (it changes no target); model selection by validation
@@ -20,7 +25,8 @@ it, then read the PSD off the measured particles.
   on the training split's *predicted* instances (the camera cannot see hidden fines; the
   read-out learns what they add). All of it is stored as plain lists in the model file's meta.
 - **Inference** (`InstanceEstimator`): full image → maps → `split_instances` → `measure_instances`
-  at the image's mm per pixel → raw number-weighted d10/d50/d90 of the instances not touching
+  at the image's mm per pixel (sieve size per ``train.instances.sieve_method``: by default the
+  size map's median over the instance) → raw number-weighted d10/d50/d90 of the instances not touching
   the image edge (`psd_from_instances`) and the calibrated d10/d50/d90 (the read-out; sorted so
   that d10 ≤ d50 ≤ d90).
 """
