@@ -42,6 +42,24 @@ def test_bad_config_names_the_key(tmp_path, mutate, expect):
     assert expect in str(e.value) and str(e.value).startswith(f"{path}: invalid config")
 
 
+def test_a_user_mesh_that_is_not_a_solid_is_refused_with_its_key_and_file(tmp_path):
+    """Checked when the config is read (Snakemake's parse, check-config): before any scene."""
+    from .test_shapes import bad_meshes
+
+    meshes = bad_meshes(tmp_path)
+    good, open_box = str(meshes["box.stl"][0]), str(meshes["open_box.obj"][0])
+    cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    cfg["datasets"]["train"].update(shape="mesh", shape_params={"mesh_files": [good, open_box]})
+    path = write_config(tmp_path / "c.yaml", cfg)
+    with pytest.raises(PsdError) as e:
+        load_config(path)
+    assert (f"datasets.train.shape_params.mesh_files[1]: particle mesh {open_box} is not a closed solid"
+            in str(e.value)), str(e.value)
+    assert "mesh_files[0]" not in str(e.value)
+    cfg["datasets"]["train"]["shape_params"]["mesh_files"] = [good]
+    load_config(write_config(path, cfg))
+
+
 def test_unreadable_config(tmp_path):
     with pytest.raises(PsdError, match="not found"):
         load_config(tmp_path / "missing.yaml")

@@ -144,6 +144,15 @@ def test_snakemake_stops_before_any_job_on_each_misconfiguration(tmp_path):
     assert "psdfactory: dataset a renders with Cycles" in err and "/nonexistent/blender/python" in err
     assert "make blender" in err
 
+    from .test_shapes import bad_meshes
+
+    meshes = bad_meshes(tmp_path)
+    mesh = {**TINY, "datasets": {"a": {**TINY["datasets"]["a"], "shape": "mesh",
+                                       "shape_params": {"mesh_files": [str(meshes["inside_out.obj"][0])]}}}}
+    err = fails_fast(tmp_path, cfg=mesh)
+    assert "c.yaml: invalid config:" in err
+    assert f"datasets.a.shape_params.mesh_files[0]: particle mesh {meshes['inside_out.obj'][0]} is inside out" in err
+
     # the report's backend comparison needs Blender only where the DAG holds it (not for `scenes`)
     err = fails_fast(tmp_path, env=no_blender_env(), cfg={**TINY, "show": {"compare_backends": 2}}, target="all")
     assert "show.compare_backends > 0" in err and "make blender" in err

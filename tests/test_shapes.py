@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -68,6 +70,37 @@ def test_user_mesh_errors(tmp_path):
         params = ShapeParams.for_family("mesh", {"mesh_files": files})
         with pytest.raises(PsdError, match=msg):
             make_particles("mesh", np.array([4.0]), np.random.default_rng(0), params)
+
+
+def bad_meshes(folder: Path) -> dict[str, tuple[Path, str]]:
+    """Mesh files that are no particle — {name: (file, what the refusal says)} — and a good box."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=[3.0, 2.0, 1.0])
+    tri = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
+    found = {}
+    for name, mesh, says in [
+        ("triangle.stl", trimesh.Trimesh(tri, [[0, 1, 2]]), "not a closed solid (3 edges"),
+        ("open_box.obj", trimesh.Trimesh(box.vertices, box.faces[:-2]), "not a closed solid (4 edges"),
+        ("inside_out.obj", trimesh.Trimesh(box.vertices, box.faces[:, ::-1]), "inside out"),
+        ("flat.obj", trimesh.Trimesh(tri, [[0, 1, 2], [0, 2, 1]], process=False), "has no volume"),
+        ("box.stl", box, ""),
+    ]:
+        mesh.export(folder / name)
+        found[name] = (folder / name, says)
+    return found
+
+
+def test_a_user_mesh_that_is_not_a_closed_solid_is_refused_naming_the_file(tmp_path):
+    pytest.importorskip("trimesh")
+    for name, (path, says) in bad_meshes(tmp_path).items():
+        params = ShapeParams.for_family("mesh", {"mesh_files": [str(path)]})
+        if not says:
+            assert make_particles("mesh", np.array([4.0]), np.random.default_rng(0), params)[0].volume_mm3 > 0
+            continue
+        with pytest.raises(PsdError) as e:
+            make_particles("mesh", np.array([4.0]), np.random.default_rng(0), params)
+        assert str(e.value).startswith(f"particle mesh {path} ") and says in str(e.value), (name, str(e.value))
 
 
 def test_pack_roundtrip():

@@ -19,6 +19,7 @@ SCHEMA = Path(__file__).with_name("config.schema.yaml")  # package data; the wor
 # What a scene's files can hold: checked here when a config is read, and where the files are made.
 MAX_PARTICLES_16BIT = 65534  # particles that a 16-bit mask.png holds (0 = table, particle k is k + 1)
 MAX_PARTICLES_CYCLES = 32766  # Blender's object index (pass_index) is a signed 16-bit value, at most 32767
+MAX_MESH_FACES = 5000  # triangles of a user's particle mesh (every particle of every scene stores its own copy)
 
 DESIGN_INPUT_SIZE = 224  # network input px of the torchvision models
 # where the design size differs; for the instance estimator: its training crops (it runs on whole images)
@@ -187,6 +188,27 @@ def _split_indices(seed: int, dataset: str, n: int, fractions: tuple, split: str
     return tuple(i for i in range(n) if assign_split(scene_entropy(seed, dataset, i), fr) == split)
 
 
+def mesh_file_problem(path: str) -> str | None:
+    """Why a user's particle mesh cannot be used (missing, unreadable, not a closed solid, no
+    volume, too many faces), or None: checked when the config is read, before any scene."""
+    if not Path(path).is_file():
+        return f"file not found: {path}"
+    stat = Path(path).stat()
+    return _mesh_problem(path, str(Path(path).resolve()), stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=64)
+def _mesh_problem(path: str, resolved: str, mtime_ns: int, size: int) -> str | None:
+    """mesh_file_problem, read once per file version (the Snakefile is parsed more than once)."""
+    from .io import read_mesh
+
+    try:
+        read_mesh(path, MAX_MESH_FACES)
+    except PsdError as e:
+        return str(e)
+    return None
+
+
 def semantic_problems(config: dict) -> list[str]:
     problems: list[str] = []
     for name, ds in config["datasets"].items():
@@ -215,9 +237,9 @@ def semantic_problems(config: dict) -> list[str]:
             files = sp.get("mesh_files") or []
             if not files:
                 problems.append(f"{key}.shape_params.mesh_files: shape 'mesh' needs at least one mesh file")
-            for f in files:
-                if not Path(f).is_file():
-                    problems.append(f"{key}.shape_params.mesh_files: file not found: {f}")
+            if "rerender_of" not in ds:  # a re-render's meshes are its source's, checked there
+                problems += [f"{key}.shape_params.mesh_files[{i}]: {p}" for i, f in enumerate(files)
+                             if (p := mesh_file_problem(f))]
         elif sp.get("mesh_files"):
             problems.append(f"{key}.shape_params.mesh_files: only used with shape 'mesh' (shape is {ds['shape']!r})")
     renders = [("render", config["render"])] + [(f"datasets.{n}.render", ds["render"])

@@ -115,6 +115,65 @@ def write_png(path: str | os.PathLike, array: np.ndarray) -> None:
         img.save(tmp, format="PNG")
 
 
+# ---- particle meshes: a user's own shapes (shape 'mesh') ----------------------------------------
+
+
+def _open_edges(mesh) -> int:
+    """Edges that border only one face: the rim of a hole or of an open surface."""
+    import trimesh
+
+    return len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+
+
+def solid_problem(mesh) -> str | None:
+    """Why a triangle mesh is not a closed solid with a positive volume (what a particle must
+    be: the physics and the labels need its volume), or None."""
+    if not mesh.is_watertight:
+        n = _open_edges(mesh)
+        holes = (f"{n} edge{'s' * (n != 1)} border{'s' * (n == 1)} only one face" if n
+                 else "some edges border more than two faces")
+        return (f"is not a closed solid ({holes}: an open surface or holes), so it has no volume. Close it "
+                "(e.g. Blender: Select All, Mesh > Clean Up > Fill Holes; or trimesh's fill_holes) and export it again")
+    if not mesh.is_winding_consistent:
+        return ("is not consistently oriented (some faces point inwards, some outwards), so its volume is not "
+                "defined. Recalculate its normals (Blender: Mesh > Normals > Recalculate Outside) and export it again")
+    volume = float(mesh.volume)
+    if not volume > 0:  # NaN too
+        if volume < 0:
+            return (f"is inside out: its faces point inwards (volume {volume:.4g} < 0). Flip its normals "
+                    "(Blender: Mesh > Normals > Recalculate Outside) and export it again")
+        return "has no volume (a flat or collapsed surface): a particle must be a solid"
+    return None
+
+
+def read_mesh(path: str | os.PathLike, max_faces: int):
+    """A user's particle mesh file (OBJ/STL/PLY/GLB, loaded with trimesh, vertices merged) as a
+    trimesh.Trimesh that is a closed, outward-facing solid with a positive volume and at most
+    `max_faces` triangles; otherwise a PsdError naming the file and what is wrong with it."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise PsdError(f"particle mesh file not found: {path}")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # trimesh divides by a zero volume
+            mesh = trimesh.load(path, force="mesh")
+    except Exception as e:
+        raise PsdError(f"could not read particle mesh {path}: {e}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise PsdError(f"particle mesh {path} holds no triangles")
+    if len(mesh.faces) > max_faces:
+        raise PsdError(f"particle mesh {path} has {len(mesh.faces)} faces; decimate it to at most {max_faces} "
+                       "(every particle of every scene stores its own copy)")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        problem = solid_problem(mesh)
+    if problem:
+        raise PsdError(f"particle mesh {path} {problem}")
+    return mesh
+
+
 # ---- images: one reader for the factory's own PNGs and for any photo given to predict ---------
 
 REDUCE_ABOVE_PIXELS = 4_000_000  # a photo larger than this is decoded reduced (read_photo)

@@ -16,14 +16,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 
 from .. import PsdError
+from ..config import MAX_MESH_FACES
+from ..io import read_mesh
 
 FAMILIES = ("crushed_rock", "granule", "ellipsoid", "mesh")
-MAX_MESH_FACES = 5000
 
 
 @dataclass(frozen=True)
@@ -149,27 +149,9 @@ def make_ellipsoid(rng: np.random.Generator, size_mm: float, p: ShapeParams) -> 
 
 @lru_cache(maxsize=64)
 def load_mesh(path: str) -> tuple[np.ndarray, np.ndarray]:
-    """A user's mesh file as (vertices, faces), closed and outward-facing."""
-    import trimesh
-
-    file = Path(path)
-    if not file.is_file():
-        raise PsdError(f"particle mesh file not found: {path}")
-    try:
-        mesh = trimesh.load(file, force="mesh")
-    except Exception as e:
-        raise PsdError(f"could not read particle mesh {path}: {e}") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise PsdError(f"particle mesh {path} holds no triangles")
-    if len(mesh.faces) > MAX_MESH_FACES:
-        raise PsdError(
-            f"particle mesh {path} has {len(mesh.faces)} faces; decimate it to at most "
-            f"{MAX_MESH_FACES} (every particle of every scene stores its own copy)"
-        )
-    if not mesh.is_watertight:
-        # An open mesh has no volume: use its convex hull, which is what the physics sees anyway.
-        return convex_mesh(np.asarray(mesh.vertices, dtype=float))
-    mesh.fix_normals()
+    """A user's mesh file as (vertices, faces): a closed, outward-facing solid (io.read_mesh
+    refuses any other, naming the file; the config check runs it before any scene is made)."""
+    mesh = read_mesh(path, MAX_MESH_FACES)
     return np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int32)
 
 
