@@ -334,6 +334,21 @@ def main(argv: list[str] | None = None) -> int:
     except PsdError as e:  # the command's one-line verdict, shown whatever the log level
         print(f"psdfactory {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:
+        if not no_space(e):
+            raise
+        print(f"psdfactory {args.command}: error: {no_space(e)}", file=sys.stderr)
+        return 2
+
+
+def no_space(e: OSError) -> str | None:
+    """The one-line message for a write that found its disk full (one not made through
+    io.atomic_path, which says it itself: a log, predict's rows), or None for another error."""
+    from .io import NO_SPACE, disk_full_message
+
+    if e.errno not in NO_SPACE:
+        return None
+    return disk_full_message(e.filename or Path.cwd())
 
 
 if __name__ == "__main__":

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import errno
+import functools
 import json
+import logging
 import os
 import re
 import tempfile
@@ -20,24 +23,121 @@ if TYPE_CHECKING:
     import pyarrow
     from PIL import Image
 
+logger = logging.getLogger(__name__)
+
+
+class DiskFullError(PsdError):
+    """A write failed because the filesystem it went to is full: the job stops at once (a batch
+    does not go on to fail every other scene), with a message naming the disk and the file."""
+
+
+# the temporary files atomic_path makes: ".<name>.<8 random characters>.tmp<suffix>" (tempfile.mkstemp)
+TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp")
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+
 
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside `path`; move it into place only if the block succeeds.
 
-    An interrupted job therefore never leaves a half-written file under the final name.
+    An interrupted job therefore never leaves a half-written file under the final name. A
+    failed block removes its temporary file; one left by a writer that was killed outright
+    (SIGKILL) is removed by the next write of the same file. A full disk is a DiskFullError
+    that names the disk and the file.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temps(path)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+        os.close(fd)
+    except OSError as e:
+        if disk_full(e, path.parent):
+            raise DiskFullError(disk_full_message(path)) from e
+        raise
     tmp_path = Path(tmp)
     try:
         yield tmp_path
         os.replace(tmp_path, path)
-    except BaseException:
+    except BaseException as e:
+        full = isinstance(e, Exception) and disk_full(e, path.parent)  # asked before the temporary file goes
         tmp_path.unlink(missing_ok=True)
+        if full:
+            raise DiskFullError(disk_full_message(path)) from e
         raise
+
+
+@functools.lru_cache(maxsize=4096)
+def _stale_temps(folder: str) -> dict[str, list[str]]:
+    """atomic_path's temporary files in `folder` when this process first writes there, by the
+    name they were for: left by a writer killed before it could rename or remove them. One
+    listing per folder and process (a folder of 10,000 predicted masks is listed once)."""
+    found: dict[str, list[str]] = {}
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return found
+    for name in names:
+        m = TEMP_NAME.match(name)
+        if m:
+            found.setdefault(m["name"], []).append(name)
+    return found
+
+
+def remove_stale_temps(path: Path) -> None:
+    """Remove the temporary files that an earlier, killed writer of `path` left beside it."""
+    for name in _stale_temps(str(path.parent)).pop(path.name, []):
+        (path.parent / name).unlink(missing_ok=True)
+        logger.debug(f"removed {path.parent / name}, left by a write of {path.name} that was killed")
+
+
+# ---- a full disk ------------------------------------------------------------------------------
+
+
+def disk_full(error: BaseException, folder: str | os.PathLike) -> bool:
+    """Whether a write into `folder` failed because its filesystem is full: ENOSPC or EDQUOT, or,
+    for libraries that do not pass the errno on (PyTorch's file writer, Arrow), a filesystem
+    with no block left for this user."""
+    if isinstance(error, DiskFullError):
+        return False  # already said
+    if isinstance(error, OSError) and error.errno in NO_SPACE or "No space left on device" in str(error):
+        return True
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return (st.f_bfree if os.geteuid() == 0 else st.f_bavail) == 0
+
+
+def mount_point(path: str | os.PathLike) -> Path:
+    """The mount point of the filesystem that holds `path` (or would hold it)."""
+    p = Path(os.path.abspath(path))
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    while not os.path.ismount(p):
+        p = p.parent
+    return p
+
+
+def _size(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB"):
+        if n < 1024 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return ""
+
+
+def disk_full_message(path: str | os.PathLike) -> str:
+    """'No space left' naming the disk (its mount point, size and what is free) and the file."""
+    where = mount_point(path)
+    try:
+        st = os.statvfs(where)
+        size = f" ({_size(st.f_blocks * st.f_frsize)}, {_size(st.f_bavail * st.f_frsize)} free)"
+    except OSError:
+        size = ""
+    return (f"no space left on device: the filesystem mounted at {where}{size} is full; writing {path} failed "
+            "and nothing was left under its name. Free space there, or set `results:` to a folder on a larger "
+            "disk, then rerun: what is done is kept")
 
 
 def _json_default(o: Any) -> Any:

@@ -26,6 +26,7 @@ import numpy as np
 
 from .. import PsdError
 from ..io import (
+    DiskFullError,
     atomic_path,
     read_json,
     read_npz,
@@ -337,6 +338,8 @@ def _run_one(args: tuple[str, dict, str]) -> tuple[str, float, str | None]:
     t0 = time.perf_counter()
     try:
         run_stage(stage, params, Path(scene_dir))
+    except DiskFullError:
+        raise  # every other scene would fail the same way: stop the batch
     except PsdError as e:
         return scene_dir, time.perf_counter() - t0, str(e)
     return scene_dir, time.perf_counter() - t0, None
