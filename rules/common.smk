@@ -13,6 +13,7 @@ from snakemake.exceptions import WorkflowError
 from psdfactory import PsdError
 from psdfactory import config as psd_config
 from psdfactory import preflight as psd_preflight
+from psdfactory import runlock as psd_runlock
 from psdfactory.manifest import shard_name
 from psdfactory.scene import stages as psd_stages
 from psdfactory.scene.stages import STAGES
@@ -87,6 +88,25 @@ def preflight():
 # file), nor in --lint (which, like Snakemake's own envvars check, does not look at the machine).
 if workflow.is_main_process and workflow.check_envvars:
     preflight()
+
+
+RESULTS_LOCK = []  # the results folder's lock (an open file), held while this process runs jobs
+
+
+def lock_results():
+    """One run per results folder (psdfactory.runlock). Taken when jobs start, in the process
+    the user started: not in a dry run (Snakemake runs no onstart there), nor in the jobs it
+    starts; released when this process ends, however it ends (kill -9 included)."""
+    if not workflow.is_main_process:
+        return
+    try:
+        RESULTS_LOCK.append(psd_runlock.lock_results(RESULTS))
+    except PsdError as e:
+        raise WorkflowError(f"psdfactory: {e}") from None
+
+
+onstart:
+    lock_results()
 
 
 wildcard_constraints:

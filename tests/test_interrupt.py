@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from psdfactory.runlock import LOCK_NAME
+
 from .workflow_helpers import REPO, snakemake, write_config
 
 pytestmark = pytest.mark.workflow
@@ -30,11 +32,12 @@ CFG = {
 
 
 def scene_tree(results: Path) -> dict[str, bytes]:
-    """Every file of the datasets but the logs (which hold timings and the kill); simulate.json
-    without its wall-clock seconds (`wall_s`, the one figure that is not reproducible)."""
+    """Every file of the datasets but the logs (which hold timings and the kill) and the run lock
+    (which names its last holder); simulate.json without its wall-clock seconds (`wall_s`, the
+    one figure that is not reproducible)."""
     tree = {}
     for p in sorted(results.rglob("*")):
-        if p.is_file() and "logs" not in p.relative_to(results).parts:
+        if p.is_file() and "logs" not in p.relative_to(results).parts and p.name != LOCK_NAME:
             data = p.read_bytes()
             if p.name == "simulate.json" and p.parent.name != "stages":  # not the stage record
                 d = json.loads(data)
@@ -51,6 +54,7 @@ def test_kill_9_mid_render_then_rerun_incomplete_is_byte_identical(tmp_path):
         write_config(w / "c.yaml", CFG)
     r = snakemake("-j2", "scenes", "--configfile", "c.yaml", workdir=straight)
     assert r.returncode == 0, r.stderr[-3000:]
+    assert "snakemake" in json.loads((straight / "results" / LOCK_NAME).read_text())["command"]  # the run held it
 
     cmd = [str(Path(sys.executable).with_name("snakemake")), "-s", str(REPO / "Snakefile"), "-d", str(killed),
            "-j2", "scenes", "--configfile", "c.yaml"]
