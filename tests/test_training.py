@@ -2,7 +2,9 @@
 
 import json
 import logging
+import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -35,14 +37,18 @@ def dataset(tmp_path_factory):
     return root
 
 
-def params(**over):
-    from psdfactory.learn.train import TrainParams
-
+def param_slice(**over) -> dict:
     p = psd_config.train_params(tiny_config(), "resnet18")  # the schema's defaults, then these
     p.update(pretrained="none", epochs=6, batch_size=3, lr=3e-3, input_size=32, precision="fp32", seed=1,
              early_stopping_patience=50)
     p.update(over)
-    return TrainParams.from_dict(p)
+    return p
+
+
+def params(**over):
+    from psdfactory.learn.train import TrainParams
+
+    return TrainParams.from_dict(param_slice(**over))
 
 
 @pytest.fixture(scope="module")
@@ -96,6 +102,40 @@ def test_resume_after_interruption_matches_uninterrupted(dataset, trained, tmp_p
     resumed = [float(r["train_loss"]) for r in csv.DictReader(open(out / "history.csv"))]
     straight = [float(r["train_loss"]) for r in csv.DictReader(open(trained[0] / "history.csv"))]
     np.testing.assert_allclose(resumed, straight, rtol=1e-5)
+
+
+@pytest.mark.slow
+def test_sigkill_mid_training_and_at_the_model_then_the_rerun_resumes_to_the_same_model(dataset, tmp_path):
+    """`psdfactory train` killed with SIGKILL (nothing gets to clean up) as it renames its
+    resume checkpoint after epoch 3, and as it renames model.pt: no model.pt is left, and the
+    same command resumes from checkpoints/last.pt to the uninterrupted run's losses and model."""
+    import csv
+
+    from .sigkill import psdfactory
+
+    def train(out, **kw):
+        return psdfactory(["train", "--params", json.dumps(param_slice()), "--results", str(dataset),
+                           "--out-dir", str(out), "--threads", "1"], **kw)
+
+    def losses(out):
+        return [(float(r["train_loss"]), float(r["val_loss"])) for r in csv.DictReader(open(out / "history.csv"))]
+
+    ref, log = tmp_path / "ref", tmp_path / "renames.txt"
+    r = train(ref, record=log)
+    assert r.returncode == 0, r.stderr[-3000:]
+    renamed = log.read_text().split()
+    made = {p for p in ref.rglob("*") if p.is_file() and "tensorboard" not in p.parts}  # (event logs: appended)
+    assert made <= {Path(f) for f in renamed}, "a training output not written through a rename"
+    ckpts = [k for k, f in enumerate(renamed, 1) if f.endswith("last.pt")]
+    model = renamed.index(str(ref / "model.pt")) + 1
+    for k, resumes in ((ckpts[2], "from epoch 3"), (model, "from epoch 7")):
+        out = tmp_path / f"kill{k}"
+        r = train(out, kill_at=k)
+        assert r.returncode == -9 and not (out / "model.pt").exists(), r.stderr[-2000:]
+        r = train(out)
+        assert r.returncode == 0 and f"resuming resnet18 {resumes}" in r.stderr, r.stderr[-3000:]
+        assert losses(out) == losses(ref)
+        assert (out / "model.pt").read_bytes() == (ref / "model.pt").read_bytes()
 
 
 @pytest.mark.slow
@@ -180,6 +220,29 @@ def test_evaluate_benchmark_report(dataset, trained, tmp_path):
     assert "data:image/png;base64," in text and "R² overall" in text and "resnet18" in text
     assert "Warning:" not in text  # pretrained: none is no fallback to warn about
     assert "| resnet18 |" in md.read_text()
+
+    # `psdfactory report` killed with SIGKILL at each of its renames, then run again
+    from .sigkill import kill_at_every_rename
+
+    given = {"metrics": ev / "metrics.json", "scatters": ev / "scatter.png", "bench": root / "bench" / "resnet18.json",
+             "histories": root / "models" / "resnet18" / "history.csv",
+             "contact-sheets": root / "tiny" / "contact_sheet.png",
+             "manifests": root / "tiny" / "manifest" / "scenes" / "shard-00000.parquet"}
+
+    def prepare(folder):
+        args = ["report", "--params", json.dumps(cfg)]
+        for i, (flag, src) in enumerate(given.items()):
+            dst = folder / "in" / str(i) / src.name
+            dst.parent.mkdir(parents=True)
+            shutil.copyfile(src, dst)
+            args += [f"--{flag}", str(dst)]
+        return args + ["--html", str(folder / "report" / "report.html"), "--md", str(folder / "report" / "report.md")]
+
+    def undated(rel, data):  # "Generated 2025-06-01 10:00 by ...": the minute it was made
+        dated = rel.startswith("report/")
+        return re.sub(rb"Generated \d{4}-\d\d-\d\d \d\d:\d\d", b"Generated", data) if dated else data
+
+    assert kill_at_every_rename(tmp_path / "killed", prepare, normalise=undated) >= 6  # figures, copies, md, html
 
 
 @pytest.mark.slow

@@ -140,6 +140,14 @@ def disk_full_message(path: str | os.PathLike) -> str:
             "disk, then rerun: what is done is kept")
 
 
+def copy_file(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """Copy a file atomically (a copy cut short never stands under the final name)."""
+    import shutil
+
+    with atomic_path(dst) as tmp:
+        shutil.copyfile(src, tmp)
+
+
 def _json_default(o: Any) -> Any:
     if isinstance(o, np.integer):
         return int(o)

@@ -5,14 +5,13 @@ from __future__ import annotations
 import base64
 import datetime as dt
 import html
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from . import PsdError, __version__
-from .io import atomic_path, pyplot, read_json, save_figure
+from .io import atomic_path, copy_file, pyplot, read_json, save_figure
 from .manifest import read_shards
 from .psd import NAMES
 
@@ -261,13 +260,13 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
     figures.append((hist_png, "Label distributions per dataset"))
     for ds, sheet in inputs.contact_sheets.items():
         dst = fig_dir / f"contact_sheet_{ds}.png"
-        shutil.copyfile(sheet, dst)
+        copy_file(sheet, dst)
         figures.append((dst, f"Contact sheet: {ds}"))
     compare_head, compare_rows = [], []
     if inputs.compare is not None:
         summary = read_json(inputs.compare[0])
         dst = fig_dir / "compare_backends.png"
-        shutil.copyfile(inputs.compare[1], dst)
+        copy_file(inputs.compare[1], dst)
         figures.append((dst, "The same scenes rendered by TinyRenderer and Blender Cycles"))
         compare_head = ["scene", "particles", "tiny (s)", "cycles (s)", "masks agree", "agree off edges"]
         compare_rows = [[r["scene_id"], str(r["n_particles"]), f"{r['seconds_tiny']:.1f}", f"{r['seconds_cycles']:.1f}",
@@ -280,7 +279,7 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
         curve = fig_dir / f"loss_{a}.png"
         plot_history(histories[a], a, curve)
         scatter = fig_dir / f"scatter_{a}.png"
-        shutil.copyfile(inputs.scatters[a], scatter)
+        copy_file(inputs.scatters[a], scatter)
         plot_figs += [(scatter, f"{a}: predicted vs true"), (curve, f"{a}: training and validation loss")]
 
     # dataset summary

@@ -100,10 +100,17 @@ def predict_batches(model, loader, device, precision) -> tuple[torch.Tensor, tor
     return torch.cat(preds), torch.cat(ys)
 
 
+def write_torch(path: Path, obj: dict) -> None:
+    """torch.save, atomically and reproducibly: through a file object, because given a path torch
+    names the archive's root folder after the file's name — here a random temporary one, which
+    would make two saves of the same weights differ byte for byte."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        torch.save(obj, f)
+
+
 def save_model(path: Path, model: nn.Module, meta: dict) -> None:
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-    with atomic_path(path) as tmp:
-        torch.save({"meta": meta, "state_dict": state}, tmp)
+    write_torch(path, {"meta": meta, "state_dict": state})
 
 
 def unpickling_reason(e: Exception) -> str:

@@ -35,6 +35,7 @@ from .runtime import (
     pick_precision,
     predict_batches,
     save_model,
+    write_torch,
 )
 
 logger = logging.getLogger(__name__)
@@ -249,9 +250,8 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
             stale += 1
         logger.info(f"epoch {epoch + 1}: train loss {train_loss:.4f}, val loss {val_loss:.4f}, "
                     f"val MAE {val_mae:.3f} mm, lr {lr:.2e}, {row['seconds']:.0f} s{' (best)' if improved else ''}")
-        with atomic_path(last_path) as tmp:
-            state = resume_state(fp, epoch, model, opt, sched, gen, loader_gen, history, best, best_epoch, stale)
-            torch.save(state, tmp)
+        write_torch(last_path, resume_state(fp, epoch, model, opt, sched, gen, loader_gen, history, best, best_epoch,
+                                            stale))
         history.write_csv(out_dir / "history.csv")
         if stale >= params.early_stopping_patience:
             stop_reason = f"early stopping (no better val loss for {stale} epochs)"
@@ -262,8 +262,7 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
     best_ckpt = load_checkpoint(ckpt_dir / "best.pt", "training checkpoint")
     summary = {**best_ckpt["meta"], "best_epoch": best_epoch, "epochs_run": len(history.rows),
                "stop_reason": stop_reason, "precision": precision, "device": str(device)}
-    with atomic_path(out_dir / "model.pt") as tmp:
-        torch.save({"meta": summary, "state_dict": best_ckpt["state_dict"]}, tmp)
+    write_torch(out_dir / "model.pt", {"meta": summary, "state_dict": best_ckpt["state_dict"]})
     history.write_csv(out_dir / "history.csv")
     logger.info(f"done: best val loss {best:.4f} at epoch {best_epoch} ({stop_reason}); wrote {out_dir / 'model.pt'}")
     return summary

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -27,7 +26,7 @@ import numpy as np
 from .. import PsdError
 from ..io import (
     DiskFullError,
-    atomic_path,
+    copy_file,
     read_json,
     read_npz,
     read_parquet,
@@ -91,8 +90,7 @@ def adopt_source(stage: str, params: dict, scene_dir: Path) -> dict:
     (meta,) = [f for f in files if f.suffix == ".json"]
     for f in files:
         if f is not meta:
-            with atomic_path(scene_dir / f.name) as tmp:
-                shutil.copyfile(f, tmp)
+            copy_file(f, scene_dir / f.name)
     record = read_json(meta)
     if stage == "sample":
         src = params["source"]
