@@ -53,7 +53,9 @@ def test_tiny_workflow_end_to_end(tmp_path):
     scenes = pq.read_table(res / "train" / "manifest" / "scenes")
     assert sorted(scenes.column("scene_id").to_pylist()) == [f"train-{i:06d}" for i in range(5)]
     assert len(list((res / "train" / "manifest" / "scenes").glob("shard-*.parquet"))) == 3
-    assert sorted(p.name for p in res.iterdir()) == ["again", "bench", "eval", "models", "ood", "report", "train"]
+    # the datasets, the models and their figures, and the run lock the workflow held (README: two runs)
+    assert sorted(p.name for p in res.iterdir()) == [".psdfactory.lock", "again", "bench", "eval", "models", "ood",
+                                                     "report", "train"]
     # the re-render: the train dataset's one test scene, same poses, other renderer, nothing simulated
     again = pq.read_table(res / "again" / "manifest" / "scenes").to_pylist()
     test = [r for r in scenes.to_pylist() if r["split"] == "test"]
