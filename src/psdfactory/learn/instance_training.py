@@ -96,7 +96,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     from .data import manifest_rows, normalise
     from .data import targets as label_targets
     from .models import count_parameters
-    from .runtime import autocast, pick_device, pick_precision, save_model
+    from .runtime import optimise_step, pick_device, pick_precision, save_model
 
     torch.manual_seed(params.seed)
     np.random.seed(params.seed % 2**32)
@@ -143,16 +143,10 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
                 x, t = random_crops(x_train, t_train, order[b : b + params.batch_size], crop, gen, params.augment)
                 if settings.photometric > 0:
                     x = photometric(x, gen, settings.photometric)
-                x = normalise(x.to(device))
-                with autocast(device, precision):
-                    out = model(x)
-                loss, _ = instance_loss(out, t.to(device), pw)
-                if not torch.isfinite(loss):
-                    raise PsdError("training diverged (non-finite loss); lower train.instances.lr")
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                total += float(loss.detach()) * len(x)
+                x, t = normalise(x.to(device)), t.to(device)
+                loss = optimise_step(model, opt, x, lambda out, t=t: instance_loss(out, t, pw)[0], device, precision,
+                                     "train.instances.lr")
+                total += loss * len(x)
                 n += len(x)
                 bar.update(len(x))
                 bar.set_postfix(loss=f"{total / n:.4f}")

@@ -50,6 +50,22 @@ def autocast(device: torch.device, precision: str):
     return torch.autocast(device.type, dtype=dtype)
 
 
+def optimise_step(model: nn.Module, opt: torch.optim.Optimizer, x: torch.Tensor, loss_of, device: torch.device,
+                  precision: str, lr_key: str) -> float:
+    """One optimiser step on the batch `x` (normalised, on `device`): forward under `precision`'s
+    autocast, `loss_of(output)`, a clear error naming `lr_key` on a non-finite loss, backward,
+    step. Returns the batch's loss."""
+    with autocast(device, precision):
+        out = model(x)
+    loss = loss_of(out)
+    if not torch.isfinite(loss):
+        raise PsdError(f"training diverged (non-finite loss); lower {lr_key}")
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return float(loss.detach())
+
+
 def faster_cpu_precision(model: nn.Module, size: int, batch: int, stats: TargetStats, aux_weight: float) -> str:
     """bf16 autocast or fp32 for CPU training, whichever trains this model faster here.
 

@@ -27,10 +27,10 @@ from .augment import augment_d4, photometric, rescale
 from .data import SceneImages, manifest_rows, normalise
 from .models import TargetStats, build_model, count_parameters, inception_aux_fits, input_size
 from .runtime import (
-    autocast,
     faster_cpu_precision,
     load_checkpoint,
     loss_fn,
+    optimise_step,
     pick_device,
     pick_precision,
     predict_batches,
@@ -111,16 +111,10 @@ def run_epoch(model, loader, stats, opt, device, precision, aux_weight, gen, par
         if params.photometric > 0:
             x = photometric(x, gen, params.photometric)
         x = normalise(x.to(device)).contiguous(memory_format=torch.channels_last)
-        y = y.to(device)
-        with autocast(device, precision):
-            out = model(x)
-        loss = loss_fn(out, stats.standardise(y), stats, aux_weight)
-        if not torch.isfinite(loss):
-            raise PsdError("training diverged (non-finite loss); lower train.lr")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        total += float(loss.detach()) * len(x)
+        y = stats.standardise(y.to(device))
+        loss = optimise_step(model, opt, x, lambda out, y=y: loss_fn(out, y, stats, aux_weight), device, precision,
+                             "train.lr")
+        total += loss * len(x)
         n += len(x)
         if bar is not None:
             bar.update(len(x))
