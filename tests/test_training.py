@@ -567,3 +567,18 @@ def test_the_resume_checkpoint_is_plain_data_that_loads_with_weights_only(tmp_pa
     g = torch.Generator()
     g.set_state(ck["gen"])
     assert torch.equal(torch.rand(5, generator=g), torch.rand(5, generator=gen))
+
+
+def test_optimise_step_steps_and_names_the_lr_key_when_the_loss_diverges():
+    from psdfactory import PsdError
+    from psdfactory.learn.runtime import optimise_step
+
+    model = torch.nn.Linear(3, 1)
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+    x = torch.ones(4, 3)
+    before = model.weight.detach().clone()
+    loss = optimise_step(model, opt, x, lambda out: out.square().mean(), torch.device("cpu"), "fp32", "train.lr")
+    assert loss > 0 and not torch.equal(model.weight, before)
+    with pytest.raises(PsdError, match="lower train.instances.lr"):
+        optimise_step(model, opt, x, lambda out: out.sum() * float("nan"), torch.device("cpu"), "fp32",
+                      "train.instances.lr")
