@@ -15,5 +15,5 @@ rule benchmark:
         stage=benchmark_params,
         results=results_param,
     shell:
-        "psdfactory benchmark --params {params.stage:q} --model {input.model:q} --results {params.results:q}"
-        " --out {output:q} --threads {threads} > {log:q} 2>&1"
+        "psdfactory --log {log:q} benchmark --params {params.stage:q} --model {input.model:q} --results {params.results:q}"
+        " --out {output:q} --threads {threads}"

@@ -32,8 +32,8 @@ rule evaluate:
         results=results_param,
         out_dir=lambda wildcards, output: os.path.dirname(output.metrics),
     shell:
-        "psdfactory evaluate --params {params.stage:q} --model {input.model:q} --results {params.results:q}"
-        " --out-dir {params.out_dir:q} --history {input.history:q} --threads {threads} > {log:q} 2>&1"
+        "psdfactory --log {log:q} evaluate --params {params.stage:q} --model {input.model:q} --results {params.results:q}"
+        " --out-dir {params.out_dir:q} --history {input.history:q} --threads {threads}"
 
 
 rule ceiling:
@@ -51,5 +51,5 @@ rule ceiling:
     params:
         stage=ceiling_params,
     shell:
-        "psdfactory ceiling --params {params.stage:q} --dataset {wildcards.dataset} --scenes {input.scenes:q}"
-        " --particles {input.particles:q} --out {output:q} > {log:q} 2>&1"
+        "psdfactory --log {log:q} ceiling --params {params.stage:q} --dataset {wildcards.dataset} --scenes {input.scenes:q}"
+        " --particles {input.particles:q} --out {output:q}"

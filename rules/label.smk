@@ -17,7 +17,7 @@ rule label:
         stage=label_params,
         scene_dir=lambda wildcards, input: os.path.dirname(input.spec),
     shell:
-        "psdfactory label --params {params.stage:q} {params.scene_dir:q} > {log:q} 2>&1"
+        "psdfactory --log {log:q} label --params {params.stage:q} {params.scene_dir:q}"
 
 
 rule label_batch:
@@ -35,5 +35,5 @@ rule label_batch:
         stage=label_params,
         scene_dirs=batch_scene_dirs,
     shell:
-        "psdfactory label --params {params.stage:q} --skip-up-to-date --jobs {threads}"
-        " --stamp {output.stamp:q} {params.scene_dirs:q} > {log:q} 2>&1"
+        "psdfactory --log {log:q} label --params {params.stage:q} --skip-up-to-date --jobs {threads}"
+        " --stamp {output.stamp:q} {params.scene_dirs:q}"

@@ -13,9 +13,9 @@ rule manifest_shard:
         results=results_param,
         scene_dirs=lambda wildcards, input: shard_scene_dirs(wildcards),
     shell:
-        "psdfactory manifest --params {params.stage:q} --results {params.results:q}"
+        "psdfactory --log {log:q} manifest --params {params.stage:q} --results {params.results:q}"
         " --scenes-out {output.scenes:q} --particles-out {output.particles:q}"
-        " {params.scene_dirs:q} > {log:q} 2>&1"
+        " {params.scene_dirs:q}"
 
 
 rule contact_sheet:
@@ -36,5 +36,5 @@ rule contact_sheet:
         results=results_param,
         n=config["show"]["n_scenes"],
     shell:
-        "psdfactory show --results {params.results:q} --dataset {wildcards.dataset}"
-        " -n {params.n} --out {output:q} > {log:q} 2>&1"
+        "psdfactory --log {log:q} show --results {params.results:q} --dataset {wildcards.dataset}"
+        " -n {params.n} --out {output:q}"

@@ -17,7 +17,7 @@ rule render:
         stage=render_params,
         scene_dir=lambda wildcards, input: os.path.dirname(input.spec),
     shell:
-        "psdfactory render --params {params.stage:q} {params.scene_dir:q} > {log:q} 2>&1"
+        "psdfactory --log {log:q} render --params {params.stage:q} {params.scene_dir:q}"
 
 
 rule render_batch:
@@ -37,5 +37,5 @@ rule render_batch:
         stage=render_params,
         scene_dirs=batch_scene_dirs,
     shell:
-        "psdfactory render --params {params.stage:q} --skip-up-to-date --jobs {threads}"
-        " --stamp {output.stamp:q} {params.scene_dirs:q} > {log:q} 2>&1"
+        "psdfactory --log {log:q} render --params {params.stage:q} --skip-up-to-date --jobs {threads}"
+        " --stamp {output.stamp:q} {params.scene_dirs:q}"

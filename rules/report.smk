@@ -23,10 +23,9 @@ rule report:
         config=lambda wildcards: as_json(config),
         compare=lambda wildcards, input: ["--compare", *input.backends] if input.backends else [],
     shell:
-        "psdfactory report --params {params.config:q} --metrics {input.metrics:q} --scatters {input.scatter:q}"
+        "psdfactory --log {log:q} report --params {params.config:q} --metrics {input.metrics:q} --scatters {input.scatter:q}"
         " --histories {input.histories:q} --bench {input.bench:q} --manifests {input.manifests:q}"
         " --contact-sheets {input.sheets:q} --ceilings {input.ceilings:q} {params.compare:q} --html {output.html:q} --md {output.md:q}"
-        " > {log:q} 2>&1"
 
 
 rule compare_backends:
@@ -51,5 +50,5 @@ rule compare_backends:
         results=results_param,
         out_dir=lambda wildcards, output: os.path.dirname(output.figure),
     shell:
-        "psdfactory compare-backends --params {params.stage:q} --results {params.results:q}"
-        " --dataset {params.dataset} -n {params.n} --out-dir {params.out_dir:q} > {log:q} 2>&1"
+        "psdfactory --log {log:q} compare-backends --params {params.stage:q} --results {params.results:q}"
+        " --dataset {params.dataset} -n {params.n} --out-dir {params.out_dir:q}"

@@ -12,7 +12,7 @@ rule sample:
         stage=sample_params,
         scene_dir=lambda wildcards, output: os.path.dirname(output.spec),
     shell:
-        "psdfactory sample --params {params.stage:q} {params.scene_dir:q} > {log:q} 2>&1"
+        "psdfactory --log {log:q} sample --params {params.stage:q} {params.scene_dir:q}"
 
 
 rule sample_batch:
@@ -30,5 +30,5 @@ rule sample_batch:
         stage=sample_batch_params,
         scene_dirs=batch_scene_dirs,
     shell:
-        "psdfactory sample --params {params.stage:q} --skip-up-to-date --jobs {threads}"
-        " --stamp {output.stamp:q} {params.scene_dirs:q} > {log:q} 2>&1"
+        "psdfactory --log {log:q} sample --params {params.stage:q} --skip-up-to-date --jobs {threads}"
+        " --stamp {output.stamp:q} {params.scene_dirs:q}"

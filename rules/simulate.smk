@@ -14,7 +14,7 @@ rule simulate:
         stage=simulate_params,
         scene_dir=lambda wildcards, input: os.path.dirname(input.spec),
     shell:
-        "psdfactory simulate --params {params.stage:q} {params.scene_dir:q} > {log:q} 2>&1"
+        "psdfactory --log {log:q} simulate --params {params.stage:q} {params.scene_dir:q}"
 
 
 rule simulate_batch:
@@ -33,5 +33,5 @@ rule simulate_batch:
         stage=simulate_params,
         scene_dirs=batch_scene_dirs,
     shell:
-        "psdfactory simulate --params {params.stage:q} --skip-up-to-date --jobs {threads}"
-        " --stamp {output.stamp:q} {params.scene_dirs:q} > {log:q} 2>&1"
+        "psdfactory --log {log:q} simulate --params {params.stage:q} --skip-up-to-date --jobs {threads}"
+        " --stamp {output.stamp:q} {params.scene_dirs:q}"

@@ -14,5 +14,5 @@ rule train:
         results=results_param,
         out_dir=lambda wildcards, output: os.path.dirname(output.model),
     shell:
-        "psdfactory train --params {params.stage:q} --results {params.results:q}"
-        " --out-dir {params.out_dir:q} --threads {threads} > {log:q} 2>&1"
+        "psdfactory --log {log:q} train --params {params.stage:q} --results {params.results:q}"
+        " --out-dir {params.out_dir:q} --threads {threads}"

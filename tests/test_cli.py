@@ -112,3 +112,33 @@ def test_quiet_and_verbose_exclude_each_other(capsys):
     with pytest.raises(SystemExit):
         main(["-q", "-v", "check-config", "x.yaml"])
     assert "not allowed with" in capsys.readouterr().err
+
+
+def _cli(*code: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", "\n".join(["import sys", "from psdfactory import cli", *code])],
+                          capture_output=True, text=True, cwd=cwd)
+
+
+def test_log_takes_the_output_and_the_verdict_reaches_the_console_too(tmp_path):
+    """--log FILE is the job log of every rule: libraries' output and the records go there (file
+    descriptors 1 and 2, as the shell's `> log 2>&1`), the one-line verdict goes there and to the
+    console, where a full disk under the log cannot swallow it."""
+    r = _cli("import os", "check = cli.cmd_check_config",
+             "def noisy(a): os.write(1, b'a library writes to fd 1\\n'); return check(a)",
+             "cli.cmd_check_config = noisy",
+             "sys.exit(cli.main(['--log', 'job.log', 'check-config', 'none.yaml']))", cwd=tmp_path)
+    log = (tmp_path / "job.log").read_text()
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip() == "psdfactory check-config: error: config file not found: none.yaml"
+    assert "a library writes to fd 1" in log and r.stderr.strip() in log.splitlines()
+
+    r = _cli("def boom(a): raise KeyError('deep inside')", "cli.cmd_check_config = boom",
+             "sys.exit(cli.main(['--log', 'job.log', 'check-config', 'none.yaml']))", cwd=tmp_path)
+    log = (tmp_path / "job.log").read_text()
+    assert r.returncode == 1
+    assert r.stderr.strip() == ("psdfactory check-config: unexpected error: KeyError: 'deep inside' "
+                                "(the traceback is in job.log)")
+    assert "Traceback (most recent call last)" in log and "in boom" in log  # the whole story in the log
+
+    r = _cli("sys.exit(cli.main(['--log', 'no/such/folder/job.log', 'check-config', 'none.yaml']))", cwd=tmp_path)
+    assert r.returncode == 2 and "cannot write the log no/such/folder/job.log: No such file or directory" in r.stderr

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
+import traceback
 from pathlib import Path
 
 from . import PsdError, __version__
@@ -167,6 +169,9 @@ def build_parser() -> argparse.ArgumentParser:
     loud = ap.add_mutually_exclusive_group()
     loud.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only (no progress bars)")
     loud.add_argument("-v", "--verbose", action="store_true", help="log debugging detail too")
+    ap.add_argument("--log", metavar="FILE",
+                    help="write everything the command prints (libraries' output too) to FILE, and its one-line "
+                         "verdict on failure to stderr as well: the rules' job logs, which a full disk can swallow")
     sub = ap.add_subparsers(dest="command", required=True)
 
     for name, helptext in [
@@ -327,18 +332,70 @@ def configure_logging(verbosity: int = 0) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    console = None
+    if args.log:
+        try:
+            console = log_to(Path(args.log))
+        except OSError as e:
+            print(f"psdfactory {args.command}: error: cannot write the log {args.log}: "
+                  f"{no_space(e) or e.strerror}", file=sys.stderr)
+            return 2
     configure_logging(-1 if args.quiet else 1 if args.verbose else 0)
     logger.debug(f"psdfactory {__version__}, arguments {sys.argv[1:] if argv is None else argv}")
     try:
         return args.func(args) or 0
     except PsdError as e:  # the command's one-line verdict, shown whatever the log level
-        print(f"psdfactory {args.command}: error: {e}", file=sys.stderr)
-        return 2
+        return verdict(f"psdfactory {args.command}: error: {e}", console)
     except OSError as e:
         if not no_space(e):
+            if console is None:
+                raise
+            return crashed(args, e, console)
+        return verdict(f"psdfactory {args.command}: error: {no_space(e)}", console)
+    except Exception as e:
+        if console is None:
             raise
-        print(f"psdfactory {args.command}: error: {no_space(e)}", file=sys.stderr)
-        return 2
+        return crashed(args, e, console)
+    finally:
+        if console is not None:
+            os.close(console)
+
+
+def log_to(path: Path) -> int:
+    """Point this process's stdout and stderr (file descriptors 1 and 2, so C libraries' output
+    too) at `path`, as the shell's ``> log 2>&1`` would, and return a descriptor of the stderr there
+    was before: the console (Snakemake's, a SLURM job's output) that the verdict also goes to."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    console = os.dup(2)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
+    return console
+
+
+def verdict(line: str, console: int | None, code: int = 2) -> int:
+    """The command's last word: to stderr (the log with --log) and to the console, so it is seen
+    even when the log cannot take it (its disk is full)."""
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except OSError:
+        pass  # the log's disk is full; the console still gets it
+    if console is not None:
+        os.write(console, (line + "\n").encode())
+    return code
+
+
+def crashed(args: argparse.Namespace, e: BaseException, console: int) -> int:
+    """An unexpected error under --log: the traceback to the log, one line naming it to the console."""
+    try:
+        traceback.print_exc(file=sys.stderr)
+        sys.stderr.flush()
+    except OSError:
+        pass
+    return verdict(f"psdfactory {args.command}: unexpected error: {type(e).__name__}: {e} "
+                   f"(the traceback is in {args.log})", console, code=1)
 
 
 def no_space(e: OSError) -> str | None:
