@@ -54,7 +54,7 @@ def main() -> None:
         torch.set_num_threads(a.threads)
     cfg = psd_config.load_config(Path(a.config))
     root = Path(a.results)
-    ds = cfg["train"]["dataset"]
+    ds = psd_config.main_training_dataset(cfg)
     evals = [d for d in cfg["datasets"] if (root / d / "manifest" / "scenes").is_dir()]
     print(f"CPU: {detect().summary()}; {torch.get_num_threads()} threads")
     ceilings = {}

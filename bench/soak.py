@@ -45,7 +45,7 @@ def tiny_config(n_scenes: int, scenes_per_job: int, seed: int) -> dict:
         "datasets": {"soak": {"n_scenes": n_scenes, "shard_size": 50, "table_size": 40, "count": [10, 14],
                               "size": {"mean": [4, 6], "sigma": [1, 2], "bounds": [1, 8]}}},
         "render": {"resolution": 48},
-        "train": {"dataset": "soak"},
+        "train": {"datasets": ["soak"]},
         "show": {"compare_backends": 0},
     }
 

@@ -3,7 +3,7 @@
 rule benchmark:
     input:
         model=f"{RESULTS}/models/{{arch}}/model.pt",
-        manifests=lambda wildcards: shard_files(config["train"]["dataset"], "scenes"),
+        manifests=lambda wildcards: shard_files(psd_config.main_training_dataset(config), "scenes"),
     output:
         f"{RESULTS}/bench/{{arch}}.json",
     log:

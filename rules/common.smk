@@ -66,7 +66,7 @@ def compare_inputs(wildcards):
     checked here, as the DAG is built, so only where the comparison is part of it (the default
     target, not `scenes`): a missing Blender stops the run before any job starts."""
     require_blender("show.compare_backends > 0 (the report compares tiny and cycles renders; 0 turns it off)")
-    return shard_files(config["train"]["dataset"], "scenes")
+    return shard_files(psd_config.main_training_dataset(config), "scenes")
 
 
 def preflight():
@@ -186,11 +186,12 @@ def train_params(wildcards):
 
 
 def evaluate_params(wildcards):
-    return as_json({"datasets": DATASETS, "precision": config["evaluate"]["precision"], "arch": wildcards.arch})
+    return as_json({"datasets": psd_config.evaluation_datasets(config), "precision": config["evaluate"]["precision"],
+                    "arch": wildcards.arch})
 
 
 def benchmark_params(wildcards):
-    return as_json({"dataset": config["train"]["dataset"], **config["benchmark"]})
+    return as_json({"dataset": psd_config.main_training_dataset(config), **config["benchmark"]})
 
 
 # ---- scene batches (scenes_per_job > 1) ----------------------------------------------------

@@ -45,7 +45,7 @@ rule compare_backends:
         "../envs/scene.yaml"
     params:
         stage=lambda wildcards: as_json(psd_config.compare_params(config)),
-        dataset=config["train"]["dataset"],
+        dataset=psd_config.main_training_dataset(config),
         n=config["show"]["compare_backends"],
         results=results_param,
         out_dir=lambda wildcards, output: os.path.dirname(output.figure),

@@ -1,6 +1,6 @@
 rule train:
     input:
-        manifests=lambda wildcards: shard_files(config["train"]["dataset"], "scenes"),
+        manifests=lambda wildcards: [f for ds in config["train"]["datasets"] for f in shard_files(ds, "scenes")],
     output:
         model=f"{RESULTS}/models/{{arch}}/model.pt",
         history=f"{RESULTS}/models/{{arch}}/history.csv",

@@ -31,7 +31,7 @@ def tiny_config(**dataset_overrides) -> dict:
         "size": {"mean": [5, 8], "sigma": [2, 3], "bounds": [1, 12]},
     }
     ds.update(dataset_overrides)
-    cfg = {"seed": 7, "datasets": {"tiny": ds}, "render": {"resolution": 64}, "train": {"dataset": "tiny"}}
+    cfg = {"seed": 7, "datasets": {"tiny": ds}, "render": {"resolution": 64}, "train": {"datasets": ["tiny"]}}
     return psd_config.validate(cfg)
 
 

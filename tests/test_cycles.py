@@ -83,7 +83,7 @@ def test_cycles_is_deterministic(both, tmp_path):
     again = tmp_path / "again"
     shutil.copytree(cyc, again)
     cfg = psd_config.validate({"datasets": {"tiny": {"n_scenes": 1}}, "render": {"resolution": 64},
-                               "train": {"dataset": "tiny"}})
+                               "train": {"datasets": ["tiny"]}})
     params = psd_config.render_params(cycles_config(cfg))
     run_render(params, again)
     np.testing.assert_array_equal(read_png(cyc / "mask.png"), read_png(again / "mask.png"))
@@ -122,13 +122,13 @@ def test_blender_failure_is_reported_with_its_output(monkeypatch, tiny_results, 
 
 def test_config_limits_particles_for_cycles():
     cfg = {"datasets": {"big": {"n_scenes": 1, "count": [100, 40000], "table_size": 2000}},
-           "render": {"backend": "cycles"}, "train": {"dataset": "big"}}
+           "render": {"backend": "cycles"}, "train": {"datasets": ["big"]}}
     with pytest.raises(PsdError, match="32766"):
         psd_config.validate(cfg)
 
 
 def test_cycles_settings_do_not_rerun_the_fast_backend():
-    base = {"datasets": {"a": {"n_scenes": 1}}, "train": {"dataset": "a"}}
+    base = {"datasets": {"a": {"n_scenes": 1}}, "train": {"datasets": ["a"]}}
     a = psd_config.validate(copy.deepcopy(base))
     b = psd_config.validate({**copy.deepcopy(base), "render": {"cycles": {"samples": 64}}})
     assert psd_config.render_params(a) == psd_config.render_params(b)

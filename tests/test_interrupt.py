@@ -26,7 +26,7 @@ CFG = {
     "datasets": {"a": {"n_scenes": 6, "shard_size": 3, "table_size": 40, "count": [10, 14],
                        "size": {"mean": [4, 6], "sigma": [1, 2], "bounds": [1, 8]}}},
     "render": {"resolution": 48},
-    "train": {"dataset": "a"},
+    "train": {"datasets": ["a"]},
     "show": {"compare_backends": 0},
 }
 

@@ -39,7 +39,7 @@ WIDE = {
 
 
 def render_settings(**over) -> RenderParams:
-    cfg = psd_config.validate({"datasets": {"a": {"n_scenes": 1}}, "train": {"dataset": "a"},
+    cfg = psd_config.validate({"datasets": {"a": {"n_scenes": 1}}, "train": {"datasets": ["a"]},
                                "render": {"resolution": 64, **copy.deepcopy(over)}})
     return RenderParams.from_dict(psd_config.render_params(cfg))
 

@@ -110,7 +110,7 @@ def test_check_slurm_reports_unset_variables_before_asking_the_cluster():
 
 TINY = {"results": "results", "datasets": {"a": {"n_scenes": 2, "count": [8, 12], "table_size": 40,
                                                  "size": {"mean": [4, 6], "sigma": [1, 2], "bounds": [1, 8]}}},
-        "render": {"resolution": 32}, "train": {"dataset": "a"}, "show": {"compare_backends": 0}}
+        "render": {"resolution": 32}, "train": {"datasets": ["a"]}, "show": {"compare_backends": 0}}
 
 
 def fails_fast(tmp_path: Path, *args: str, env: dict | None = None, cfg: dict | None = None, target: str = "scenes"):

@@ -109,5 +109,6 @@ def test_accuracy_table_shows_fractions_of_the_ceiling_and_the_rerender_column()
 def test_rerenders_are_found_and_named_by_their_renderer():
     cfg = tiny_config(n_scenes=8, split={"train": 0.5, "val": 0.25, "test": 0.25})
     cfg["datasets"]["again"] = {"rerender_of": {"dataset": "tiny"}, "render": {"backend": "cycles"}}
-    assert rerenders_of(cfg, "tiny") == {"again": "Cycles (again)"}
+    cfg["datasets"]["more"] = {"rerender_of": {"dataset": "tiny", "split": ["train", "val"]}}
+    assert rerenders_of(cfg, "tiny") == {"again": "Cycles (again)"}  # `more` is training images, not a test
     assert rerenders_of(cfg, "again") == {}

@@ -20,7 +20,7 @@ BASE = {
               "size": {"mean": [5, 7], "sigma": [1, 2], "bounds": [1, 8]}},
     },
     "render": {"resolution": 32},
-    "train": {"dataset": "a"},
+    "train": {"datasets": ["a"]},
     "show": {"compare_backends": 0},  # `all` would otherwise need Blender (checked as the DAG is built)
 }
 

@@ -130,10 +130,27 @@ def rerender_problems(config: dict) -> list[str]:
             problems.append(f"{key}.dataset: {src!r} is not one of the configured datasets")
         elif "rerender_of" in config["datasets"][src]:
             problems.append(f"{key}.dataset: {src!r} is itself a re-render; name the dataset it re-renders")
-        elif ds["rerender_of"]["split"] not in config["datasets"][src]["split"]:
-            problems.append(f"{key}.split: {src!r} has no split {ds['rerender_of']['split']!r} "
-                            f"(its splits: {', '.join(config['datasets'][src]['split'])})")
+        else:
+            for split in rerender_splits(ds):
+                if split not in config["datasets"][src]["split"]:
+                    problems.append(f"{key}.split: {src!r} has no split {split!r} "
+                                    f"(its splits: {', '.join(config['datasets'][src]['split'])})")
     return problems
+
+
+def rerender_splits(ds: dict) -> list[str]:
+    """The source splits a re-render dataset takes its scenes from (`rerender_of.split`: one name or a list)."""
+    split = ds["rerender_of"].get("split", "test")
+    return [split] if isinstance(split, str) else list(split)
+
+
+def dataset_splits(config: dict, dataset: str) -> set[str]:
+    """The splits a dataset's scenes fall in: those with a fraction > 0, of a re-render the source
+    splits it takes (each scene keeps its source's split)."""
+    ds = config["datasets"][dataset]
+    if "rerender_of" in ds:
+        return set(rerender_splits(ds))
+    return {name for name, f in ds["split"].items() if f > 0}
 
 
 def resolve_datasets(config: dict) -> list[str]:
@@ -159,10 +176,11 @@ def resolve_datasets(config: dict) -> list[str]:
             ds[k] = copy.deepcopy(src[k])
         n = len(source_indices(config, name, cap=False))
         ds["n_scenes"] = min(ds.get("n_scenes", n), n)
-        ds["split"] = {"test": 1.0}
+        # the source's fractions: each scene keeps its source's split (assign_split of the same random stream)
+        ds["split"] = copy.deepcopy(src["split"])
         if ds["n_scenes"] == 0:
             problems.append(f"datasets.{name}.rerender_of: {ds['rerender_of']['dataset']!r} has no "
-                            f"{ds['rerender_of']['split']!r} scenes to re-render")
+                            f"{' or '.join(map(repr, rerender_splits(ds)))} scenes to re-render")
     return problems
 
 
@@ -172,12 +190,15 @@ def dataset_render(config: dict, dataset: str) -> dict:
 
 
 def source_indices(config: dict, dataset: str, cap: bool = True) -> list[int]:
-    """A re-render's scenes: the indices of its source's scenes in the chosen split (known from
-    each scene's random stream, before any scene exists), at most n_scenes of them."""
-    r = config["datasets"][dataset]["rerender_of"]
+    """A re-render's scenes: the indices of its source's scenes in the chosen splits (known from
+    each scene's random stream, before any scene exists), in order, at most n_scenes of them."""
+    ds = config["datasets"][dataset]
+    r = ds["rerender_of"]
     src = config["datasets"][r["dataset"]]
-    idx = _split_indices(config["seed"], r["dataset"], src["n_scenes"], tuple(sorted(src["split"].items())), r["split"])
-    return list(idx[: config["datasets"][dataset]["n_scenes"]] if cap else idx)
+    fractions = tuple(sorted(src["split"].items()))
+    idx = sorted(i for split in rerender_splits(ds)
+                 for i in _split_indices(config["seed"], r["dataset"], src["n_scenes"], fractions, split))
+    return idx[: ds["n_scenes"]] if cap else idx
 
 
 @functools.lru_cache(maxsize=64)
@@ -261,14 +282,22 @@ def semantic_problems(config: dict) -> list[str]:
                             f"particles (Blender's object index tops out at {MAX_PARTICLES_CYCLES + 1})")
     t = config["train"]
     _ordered("train.scale_augment", t["scale_augment"], problems)
-    if t["dataset"] not in config["datasets"]:
-        problems.append(f"train.dataset: {t['dataset']!r} is not one of the configured datasets "
+    unknown = [d for d in t["datasets"] if d not in config["datasets"]]
+    for d in unknown:
+        problems.append(f"train.datasets: {d!r} is not one of the configured datasets "
                         f"({', '.join(config['datasets'])})")
-    else:
-        split = config["datasets"][t["dataset"]]["split"]
+    if len(set(t["datasets"])) != len(t["datasets"]):
+        problems.append("train.datasets: lists a dataset twice")
+    if not unknown:
+        have = set().union(*(dataset_splits(config, d) for d in t["datasets"]))
         for s in ("train", "val"):
-            if split.get(s, 0) <= 0:
-                problems.append(f"datasets.{t['dataset']}.split: training needs a '{s}' fraction > 0")
+            if s not in have:
+                problems.append(f"train.datasets: none of {', '.join(t['datasets'])} has '{s}' scenes; training "
+                                f"needs them (datasets.<name>.split, or a re-render's rerender_of.split)")
+        for d in t["datasets"]:
+            if not dataset_splits(config, d) & {"train", "val"}:
+                problems.append(f"train.datasets: {d!r} has no train or val scenes (only "
+                                f"{', '.join(sorted(dataset_splits(config, d)))}): it would add nothing to training")
     if len(set(t["architectures"])) != len(t["architectures"]):
         problems.append("train.architectures: lists an architecture twice")
     return problems
@@ -368,9 +397,21 @@ def shard_batches(config: dict, dataset: str, shard: int) -> range:
     return range(rng.start // n, (rng.stop - 1) // n + 1)
 
 
+def evaluation_datasets(config: dict) -> list[str]:
+    """The datasets every model is evaluated on: all but re-renders of training splits only (more
+    training images for train.datasets, never a test)."""
+    return [d for d in config["datasets"] if "rerender_of" not in config["datasets"][d]
+            or "test" in dataset_splits(config, d)]
+
+
+def main_training_dataset(config: dict) -> str:
+    """The first of train.datasets: the benchmark's images, the backend comparison's scenes."""
+    return config["train"]["datasets"][0]
+
+
 def train_params(config: dict, arch: str) -> dict:
     t = config["train"]
-    keys = ("dataset", "pretrained", "epochs", "batch_size", "lr", "weight_decay", "lr_factor", "lr_patience",
+    keys = ("datasets", "pretrained", "epochs", "batch_size", "lr", "weight_decay", "lr_factor", "lr_patience",
             "early_stopping_patience", "precision", "device", "aux_loss_weight", "augment", "scale_augment",
             "photometric")
     out = {k: t[k] for k in keys}

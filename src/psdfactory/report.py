@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from . import PsdError, __version__
+from .config import evaluation_datasets, rerender_splits
 from .io import atomic_path, copy_file, pyplot, read_json, save_figure
 from .manifest import read_shards
 from .psd import NAMES
@@ -128,7 +129,7 @@ def rerenders_of(config: dict, dataset: str) -> dict[str, str]:
     """The re-render datasets of `dataset`'s scenes → a label naming their renderer."""
     out = {}
     for name, ds in config["datasets"].items():
-        if ds.get("rerender_of", {}).get("dataset") == dataset:
+        if ds.get("rerender_of", {}).get("dataset") == dataset and "test" in rerender_splits(ds):
             backend = (ds.get("render") or config["render"])["backend"]
             out[name] = f"{'Cycles' if backend == 'cycles' else 'TinyRenderer'} ({name})"
     return out
@@ -309,9 +310,10 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
                _md_table(compare_head, compare_rows), ""]
     md += [f"![{c}](figures/{p.name})" for p, c in figures] + [""]
     ceilings = {ds: read_json(f) for ds, f in inputs.ceilings.items()}
-    acc = {ds: accuracy_table(metrics, ds, ceilings.get(ds), rerenders_of(config, ds)) for ds in datasets}
+    tested = evaluation_datasets(config)  # not the re-renders that are training images only
+    acc = {ds: accuracy_table(metrics, ds, ceilings.get(ds), rerenders_of(config, ds)) for ds in tested}
     md += ["## Accuracy", "", ACCURACY_NOTE, ""]
-    for ds in datasets:
+    for ds in tested:
         md += [f"### {ds}", "", _md_table(*acc[ds]), ""]
     inst_head, inst_rows = instance_table(metrics, datasets)
     if inst_rows:
@@ -339,7 +341,7 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
               f"{summary['cycles'].get('samples', '?')} samples):</p>", _html_table(compare_head, compare_rows)]
     h += [_img_tag(p, c) for p, c in figures]
     h += ["<h2>Accuracy</h2>", f"<p>{html.escape(ACCURACY_NOTE)}</p>"]
-    for ds in datasets:
+    for ds in tested:
         h += [f"<h3>{html.escape(ds)}</h3>", _html_table(*acc[ds])]
     if inst_rows:
         h += ["<h2>Instance estimator</h2>", f"<p>{html.escape(INSTANCE_NOTE)}</p>", _html_table(inst_head, inst_rows)]

@@ -24,6 +24,19 @@ def manifest_rows(results_root: Path, dataset: str, splits: tuple[str, ...] | No
     return rows
 
 
+def training_rows(results_root: Path, datasets: tuple[str, ...] | list[str]
+                  ) -> tuple[list[dict], list[dict], list[dict]]:
+    """The train and val scenes of every training dataset, together (e.g. TinyRenderer and Cycles
+    renders of the same scenes), and all their rows (the training fingerprint's input)."""
+    rows = [r for ds in datasets for r in manifest_rows(results_root, ds)]
+    train = [r for r in rows if r["split"] == "train"]
+    val = [r for r in rows if r["split"] == "val"]
+    if not train or not val:
+        raise PsdError(f"train.datasets {', '.join(datasets)}: {len(train)} train and {len(val)} val scenes; "
+                       "training needs both (datasets.<name>.split and n_scenes)")
+    return train, val, rows
+
+
 def targets(rows: list[dict]) -> torch.Tensor:
     return torch.tensor([[r[t] for t in TARGETS] for r in rows], dtype=torch.float32).reshape(-1, len(TARGETS))
 

@@ -93,7 +93,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     from tqdm import tqdm
 
     from .augment import photometric
-    from .data import manifest_rows, normalise
+    from .data import normalise, training_rows
     from .data import targets as label_targets
     from .models import count_parameters
     from .runtime import optimise_step, pick_device, pick_precision, save_model
@@ -104,14 +104,10 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     precision = pick_precision(params.precision, device)
     if precision == "bf16" and device.type == "cpu" and params.precision == "auto":
         precision = "fp32"  # not timed here: the small convolutions gain little from emulated or native bf16
-    rows = manifest_rows(results_root, params.dataset)
-    train_rows = [r for r in rows if r["split"] == "train"]
-    val_rows = [r for r in rows if r["split"] == "val"]
-    if not train_rows or not val_rows:
-        raise PsdError(f"dataset {params.dataset!r} has {len(train_rows)} train and {len(val_rows)} val scenes; "
-                       "training needs both (datasets.<name>.split and n_scenes)")
+    train_rows, val_rows, rows = training_rows(results_root, params.datasets)
     t_load = time.perf_counter()
-    particles = read_particles(results_root, params.dataset)  # the size map's targets
+    # the size map's targets
+    particles = {k: v for ds in params.datasets for k, v in read_particles(results_root, ds).items()}
     x_train, t_train = load_scenes(results_root, train_rows, particles)
     x_val, t_val = load_scenes(results_root, val_rows, particles)
     crop = min(int(params.input_size), *x_train.shape[-2:])
@@ -120,7 +116,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     model = model.to(device)
     n_params = count_parameters(model)
     logger.info(f"training {ARCH} ({TRUNK} trunk + U-Net decoder, {n_params / 1e6:.2f} M parameters, weights: "
-        f"{weights_used}) on {len(train_rows)} train / {len(val_rows)} val scenes of {params.dataset!r}: "
+        f"{weights_used}) on {len(train_rows)} train / {len(val_rows)} val scenes of {', '.join(params.datasets)}: "
         f"{settings.crops_per_image} random "
         f"{crop}-px crops per image and epoch, {device} {precision}, {params.epochs} epochs, lr {settings.lr}, "
         f"boundary weight {pw:.1f} (targets made in {time.perf_counter() - t_load:.1f} s)")

@@ -24,7 +24,7 @@ from ..config import config_fields
 from ..io import atomic_path
 from ..psd import TARGETS
 from .augment import augment_d4, photometric, rescale
-from .data import SceneImages, manifest_rows, normalise
+from .data import SceneImages, normalise, training_rows
 from .models import TargetStats, build_model, count_parameters, inception_aux_fits, input_size
 from .runtime import (
     faster_cpu_precision,
@@ -48,7 +48,7 @@ class TrainParams:
     (config.train_params)."""
 
     arch: str  # one of train.architectures
-    dataset: str
+    datasets: tuple[str, ...]  # trained on together
     pretrained: str
     epochs: int
     batch_size: int
@@ -152,14 +152,7 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
     precision = pick_precision(params.precision, device)
     size = input_size(params.arch, {params.arch: params.input_size})
 
-    rows = manifest_rows(results_root, params.dataset)
-    train_rows = [r for r in rows if r["split"] == "train"]
-    val_rows = [r for r in rows if r["split"] == "val"]
-    if not train_rows or not val_rows:
-        raise PsdError(
-            f"dataset {params.dataset!r} has {len(train_rows)} train and {len(val_rows)} val scenes; "
-            "training needs both (datasets.<name>.split and n_scenes)"
-        )
+    train_rows, val_rows, rows = training_rows(results_root, params.datasets)
     train_ds = SceneImages(results_root, train_rows, size)
     val_ds = SceneImages(results_root, val_rows, size)
     stats = TargetStats.from_targets(train_ds.y)
@@ -204,7 +197,7 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
     tb = SummaryWriter(str(out_dir / "tensorboard"))
     n_params = count_parameters(model)
     logger.info(f"training {params.arch} ({n_params / 1e6:.1f} M parameters, weights: {weights_used}) on "
-        f"{len(train_ds)} train / {len(val_ds)} val scenes of {params.dataset!r}, input {size} px, "
+        f"{len(train_ds)} train / {len(val_ds)} val scenes of {', '.join(params.datasets)}, input {size} px, "
         f"{device} {precision}, up to {params.epochs} epochs")
     meta = {
         "arch": params.arch,
