@@ -202,3 +202,23 @@ def test_batched_reruns_regenerate_only_the_scenes_that_changed(built_batched, t
     assert {k.split("/")[2] for k in set(after) - set(before)} == {"a-000003", "a-000004"}
     assert "1 of 2 scenes to run, 1 up to date" in (results / "a" / "logs" / "sample" / "batch-00001.log").read_text()
     assert not any(planned_jobs(dry(work, cfg)[1]).values())
+
+
+def test_a_rerender_of_the_training_splits_adds_only_its_scenes_and_feeds_training(built):
+    """train.datasets [a, a_more], a_more = a's train and val scenes rendered again: the dry run
+    plans a_more's scenes alone (a is up to date; its test scenes are not re-rendered) and a
+    training job that reads both datasets' manifests."""
+    from psdfactory import config as psd_config
+
+    work, cfg = built
+    cfg = copy.deepcopy(cfg)
+    cfg["datasets"]["a_more"] = {"rerender_of": {"dataset": "a", "split": ["train", "val"]},
+                                 "render": {"resolution": 24}}
+    cfg["train"]["datasets"] = ["a", "a_more"]
+    n = len(psd_config.source_indices(psd_config.validate(copy.deepcopy(cfg)), "a_more"))
+    assert 0 < n < cfg["datasets"]["a"]["n_scenes"] or n == cfg["datasets"]["a"]["n_scenes"]
+    jobs, r = dry(work, cfg, target="results/models/resnet50/model.pt")
+    for rule in ("sample", "simulate", "render", "label"):
+        assert sorted(planned_wildcards(r, rule)) == [f"dataset=a_more, scene=a_more-{k:06d}" for k in range(n)]
+    assert jobs["train"] == 1
+    assert "results/a_more/manifest/scenes/shard-00000.parquet" in r.stdout + r.stderr

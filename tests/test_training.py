@@ -4,6 +4,8 @@ import json
 import logging
 import re
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -293,6 +295,13 @@ def test_export_matches_pytorch(trained, tmp_path):
     ts = torch.jit.load(str(tmp_path / "exp" / "model.torchscript.pt"))
     out = ts(torch.randn(3, 3, 32, 32))
     assert out.shape == (3, 3)
+    # the same model exported twice (two commands): the same files, byte for byte
+    for run in ("a", "b"):
+        r = subprocess.run([sys.executable, "-m", "psdfactory.cli", "export", "--model", str(trained[0] / "model.pt"),
+                            "--out-dir", str(tmp_path / run)], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr[-2000:]
+    for f in ("model.torchscript.pt", "model.onnx", "meta.json"):
+        assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f
 
 
 @pytest.mark.slow

@@ -51,8 +51,8 @@ def export(model_path: Path, out_dir: Path, int8_results: Path | None = None, da
     ts_path = out_dir / "model.torchscript.pt"
     with torch.no_grad():
         traced = torch.jit.trace(wrapped, x)
-    with atomic_path(ts_path) as tmp:
-        traced.save(str(tmp))
+    with atomic_path(ts_path) as tmp, open(tmp, "wb") as f:
+        torch.jit.save(traced, f)  # through a file object: given a path, the archive is named after the temp file
     loaded = torch.jit.load(str(ts_path))
     with torch.inference_mode():
         ts_out = loaded(x).numpy()
