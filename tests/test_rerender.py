@@ -23,6 +23,18 @@ def rerender_config(n_scenes=8, train=("tiny",), **over):
     return psd_config.validate(raw)
 
 
+def make_rerender(cfg: dict, root):
+    """The 8 scenes of `tiny`, then every stage of the re-render `again`: its scene folders."""
+    for i in range(8):
+        make_scene(cfg, root / "tiny" / "scenes" / f"tiny-{i:06d}", index=i)
+    dirs = [root / "again" / "scenes" / f"again-{k:06d}" for k in range(cfg["datasets"]["again"]["n_scenes"])]
+    for stage in ("sample", "simulate", "render", "label"):
+        params = (getattr(psd_config, f"{stage}_params")(cfg, "again") if stage != "label"
+                  else psd_config.label_params(cfg))
+        run_scenes(stage, params, dirs)
+    return dirs
+
+
 def test_a_rerender_takes_its_sources_test_scenes_and_settings():
     cfg = rerender_config()
     src, again = cfg["datasets"]["tiny"], cfg["datasets"]["again"]
@@ -54,13 +66,7 @@ def test_bad_rerender_configs_name_the_key(over, expect):
 def test_rerendered_scenes_reuse_particles_poses_and_labels(tmp_path):
     cfg = rerender_config()
     root = tmp_path / "results"
-    for i in range(8):
-        make_scene(cfg, root / "tiny" / "scenes" / f"tiny-{i:06d}", index=i)
-    dirs = [root / "again" / "scenes" / f"again-{k:06d}" for k in range(cfg["datasets"]["again"]["n_scenes"])]
-    for stage in ("sample", "simulate", "render", "label"):
-        params = (getattr(psd_config, f"{stage}_params")(cfg, "again") if stage != "label"
-                  else psd_config.label_params(cfg))
-        run_scenes(stage, params, dirs)
+    dirs = make_rerender(cfg, root)
     for k, d in enumerate(dirs):
         spec = read_json(d / "spec.json")
         src = root / "tiny" / "scenes" / spec["source"]["scene_id"]
@@ -106,13 +112,7 @@ def test_a_rerender_of_the_training_splits_trains_beside_its_source_and_is_never
     split = {i: assign_split(scene_entropy(cfg["seed"], "tiny", i), src["split"]) for i in range(8)}
     assert psd_config.source_indices(cfg, "again") == [i for i in range(8) if split[i] in ("train", "val")]
     root = tmp_path / "results"
-    for i in range(8):
-        make_scene(cfg, root / "tiny" / "scenes" / f"tiny-{i:06d}", index=i)
-    dirs = [root / "again" / "scenes" / f"again-{k:06d}" for k in range(cfg["datasets"]["again"]["n_scenes"])]
-    for stage in ("sample", "simulate", "render", "label"):
-        params = (getattr(psd_config, f"{stage}_params")(cfg, "again") if stage != "label"
-                  else psd_config.label_params(cfg))
-        run_scenes(stage, params, dirs)
+    dirs = make_rerender(cfg, root)
     for ds, scene_dirs in (("tiny", sorted((root / "tiny" / "scenes").iterdir())), ("again", dirs)):
         write_shard(scene_dirs, root, psd_config.manifest_params(cfg, ds)["split"],
                     root / ds / "manifest" / "scenes" / "shard-00000.parquet",
