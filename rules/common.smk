@@ -186,8 +186,13 @@ def train_params(wildcards):
 
 
 def evaluate_params(wildcards):
-    return as_json({"datasets": psd_config.evaluation_datasets(config), "precision": config["evaluate"]["precision"],
-                    "arch": wildcards.arch})
+    return as_json(
+        {
+            "datasets": psd_config.evaluation_datasets(config),
+            "precision": config["evaluate"]["precision"],
+            "arch": wildcards.arch,
+        }
+    )
 
 
 def benchmark_params(wildcards):
