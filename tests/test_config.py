@@ -16,6 +16,12 @@ def test_default_and_paper_configs_are_valid():
     paper = load_config(REPO / "config" / "paper.yaml")
     assert paper["datasets"]["train"]["count"] == [700, 1000]
     assert paper["render"]["resolution"] == 512
+    full = load_config(REPO / "config" / "cpu-full.yaml")  # trains on both renderers, tests on both
+    looks = {d: psd_config.dataset_render(full, d)["backend"] for d in full["train"]["datasets"]}
+    assert looks == {"train": "tiny", "train_cycles_train": "cycles"}
+    assert psd_config.dataset_splits(full, "train_cycles_train") == {"train", "val"}
+    assert "train_cycles_train" not in psd_config.evaluation_datasets(full)
+    assert {"train_cycles", "unseen_cycles"} <= set(psd_config.evaluation_datasets(full))
 
 
 @pytest.mark.parametrize(
