@@ -346,13 +346,9 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args) or 0
     except PsdError as e:  # the command's one-line verdict, shown whatever the log level
         return verdict(f"psdfactory {args.command}: error: {e}", console)
-    except OSError as e:
-        if not no_space(e):
-            if console is None:
-                raise
-            return crashed(args, e, console)
-        return verdict(f"psdfactory {args.command}: error: {no_space(e)}", console)
     except Exception as e:
+        if isinstance(e, OSError) and no_space(e):  # a write not made through io.atomic_path
+            return verdict(f"psdfactory {args.command}: error: {no_space(e)}", console)
         if console is None:
             raise
         return crashed(args, e, console)
