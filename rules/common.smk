@@ -33,6 +33,7 @@ if shutil.which("psdfactory") is None:
 
 RESULTS = config["results"].rstrip("/")  # every job that needs the results root gets it as --results
 DATASETS = list(config["datasets"])
+EVALUATED = psd_config.evaluation_datasets(config)  # every model is scored on these
 ARCHS = list(config["train"]["architectures"])
 
 
@@ -188,7 +189,7 @@ def train_params(wildcards):
 def evaluate_params(wildcards):
     return as_json(
         {
-            "datasets": psd_config.evaluation_datasets(config),
+            "datasets": EVALUATED,
             "precision": config["evaluate"]["precision"],
             "arch": wildcards.arch,
         }
@@ -289,6 +290,11 @@ def shard_inputs(wildcards):
 def shard_files(dataset, table):
     n = psd_config.n_shards(config, dataset)
     return [f"{RESULTS}/{dataset}/manifest/{table}/{shard_name(k)}" for k in range(n)]
+
+
+def shards_of(datasets, table):
+    """The manifest shards (`scenes` or `particles`) of several datasets."""
+    return [f for ds in datasets for f in shard_files(ds, table)]
 
 
 def dataset_shards(table):

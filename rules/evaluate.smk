@@ -2,11 +2,9 @@ rule evaluate:
     input:
         model=f"{RESULTS}/models/{{arch}}/model.pt",
         history=f"{RESULTS}/models/{{arch}}/history.csv",
-        manifests=lambda wildcards: [f for ds in DATASETS for f in shard_files(ds, "scenes")],
+        manifests=shards_of(EVALUATED, "scenes"),
         # the instance estimator also scores each matched particle against its true sieve size
-        particles=lambda wildcards: (
-            [f for ds in DATASETS for f in shard_files(ds, "particles")] if wildcards.arch == "instances" else []
-        ),
+        particles=lambda wildcards: shards_of(EVALUATED, "particles") if wildcards.arch == "instances" else [],
     output:
         metrics=f"{RESULTS}/eval/{{arch}}/metrics.json",
         predictions=f"{RESULTS}/eval/{{arch}}/predictions.csv",

@@ -6,7 +6,7 @@ rule report:
         histories=expand(f"{RESULTS}/models/{{arch}}/history.csv", arch=ARCHS),
         sheets=expand(f"{RESULTS}/{{dataset}}/contact_sheet.png", dataset=DATASETS),
         ceilings=expand(f"{RESULTS}/{{dataset}}/ceiling.json", dataset=DATASETS),
-        manifests=[f for ds in DATASETS for f in shard_files(ds, "scenes")],
+        manifests=shards_of(DATASETS, "scenes"),
         backends=compare_targets(),
     output:
         html=report(

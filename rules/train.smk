@@ -1,6 +1,6 @@
 rule train:
     input:
-        manifests=lambda wildcards: [f for ds in config["train"]["datasets"] for f in shard_files(ds, "scenes")],
+        manifests=shards_of(config["train"]["datasets"], "scenes"),
     output:
         model=f"{RESULTS}/models/{{arch}}/model.pt",
         history=f"{RESULTS}/models/{{arch}}/history.csv",
