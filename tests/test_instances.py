@@ -18,10 +18,8 @@ from psdfactory.learn.instances import (
     MAPS,
     InstanceEstimator,
     InstanceNet,
-    apply_readout,
     decode_size,
     encode_size,
-    fit_readout,
     fully_visible,
     instance_loss,
     instance_targets,
@@ -31,6 +29,7 @@ from psdfactory.learn.instances import (
     target_stack,
 )
 from psdfactory.learn.particles import READOUT_FEATURES, STAT_NAMES, match_instances, measure_instances
+from psdfactory.learn.readout import apply_readout, fit_readout
 from psdfactory.manifest import write_shard
 
 from .conftest import make_scene, tiny_config

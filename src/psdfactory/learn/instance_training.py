@@ -32,7 +32,6 @@ from .instances import (
     all_maps,
     boundary_weight,
     build_instance_net,
-    fit_readout,
     instance_loss,
     load_scenes,
     postprocess,
@@ -41,6 +40,7 @@ from .instances import (
     torch_maps_fn,
 )
 from .particles import match_instances
+from .readout import fit_readout
 
 logger = logging.getLogger(__name__)
 
