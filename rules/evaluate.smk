@@ -36,7 +36,8 @@ rule evaluate:
 
 rule ceiling:
     """What the dataset's images allow: labels read out from the true sizes of the visible
-    particles (and from the generator's own distribution), cross-validated, per target."""
+    particles, from the footprints of the true masks (and from the generator's own
+    distribution), cross-validated, per target."""
     input:
         scenes=dataset_shards("scenes"),
         particles=dataset_shards("particles"),
@@ -48,6 +49,7 @@ rule ceiling:
         "../envs/scene.yaml"
     params:
         stage=ceiling_params,
+        results=results_param,
     shell:
         "psdfactory --log {log:q} ceiling --params {params.stage:q} --dataset {wildcards.dataset} --scenes {input.scenes:q}"
-        " --particles {input.particles:q} --out {output:q}"
+        " --particles {input.particles:q} --results {params.results:q} --out {output:q}"

@@ -4,7 +4,16 @@ import numpy as np
 import pytest
 
 from psdfactory import PsdError
-from psdfactory.learn.ceiling import cross_validated_r2, dataset_ceilings, sampling_features, visible_features
+from psdfactory.learn.ceiling import (
+    cross_validated_r2,
+    dataset_ceilings,
+    footprint_features,
+    sampling_features,
+    scene_footprints,
+    visible_features,
+)
+from psdfactory.io import write_png
+from psdfactory.learn.particles import STAT_NAMES
 from psdfactory.psd import TARGETS, weighted_percentiles
 
 
@@ -72,3 +81,51 @@ def test_too_few_scenes_or_one_fixed_distribution():
     for s in scenes:
         s["size_mean"], s["size_sigma"] = 7.0, 2.0
     assert dataset_ceilings(scenes, particles, bounds=(0.5, 100))["sampling"] is None
+
+
+def _disc_mask(diameters_px, size=160, gap=3):
+    """Discs of the given diameters side by side in rows, none touching another or the edge."""
+    mask = np.zeros((size, size), np.uint16)
+    yy, xx = np.mgrid[:size, :size]
+    x = y = gap + 1
+    row_h = 0
+    for k, d in enumerate(diameters_px, 1):
+        if x + d + gap >= size:
+            x, y, row_h = gap + 1, y + row_h + gap, 0
+        assert y + d + gap < size, "too many discs for the mask"
+        mask[(yy - (y + d / 2)) ** 2 + (xx - (x + d / 2)) ** 2 <= (d / 2) ** 2] = k
+        x, row_h = x + d + gap, max(row_h, d)
+    return mask
+
+
+def test_footprint_features_measure_the_true_masks_discs():
+    f = footprint_features(_disc_mask([10, 20, 30, 20]), mm_per_px=0.5)
+    stat = dict(zip(STAT_NAMES, f, strict=True))
+    assert stat["d50_mm"] == pytest.approx(10.0, abs=0.6)  # 20 px discs at 0.5 mm/px, to within a pixel
+    assert stat["d10_mm"] < stat["d50_mm"] < stat["d90_mm"]
+    assert stat["edge_fraction"] == 0.0
+
+
+def test_footprint_ceiling_is_perfect_when_every_grain_shows_its_whole_footprint(tmp_path):
+    """Labels = percentiles of the discs drawn in each mask: a perfect segmentation measures them
+    all, so the footprint ceiling is near 1; hiding the small discs (not drawn) lowers d10's most."""
+    rng = np.random.default_rng(3)
+    scenes, particles, hidden = [], {}, {}
+    for i in range(30):
+        d_px = np.clip(rng.normal(rng.uniform(8, 18), rng.uniform(2, 5), 16), 4, 30).round()
+        labels = weighted_percentiles(d_px * 0.5, None)
+        path = tmp_path / f"s{i}" / "mask.png"
+        path.parent.mkdir()
+        write_png(path, _disc_mask(d_px, size=200))
+        (tmp_path / f"s{i}" / "hidden.png").parent.mkdir(exist_ok=True)
+        write_png(tmp_path / f"s{i}" / "hidden.png", _disc_mask(d_px[d_px >= 12], size=200))
+        scenes.append({"scene_id": f"s{i}", **dict(zip(TARGETS, labels, strict=True)), "size_mean": 1.0,
+                       "size_sigma": 1.0, "mask_path": f"s{i}/mask.png", "mm_per_px": 0.5})
+        particles[f"s{i}"] = (d_px * 0.5, np.full(len(d_px), 10))
+    fp = scene_footprints(tmp_path, scenes)
+    c = dataset_ceilings(scenes, particles, bounds=(0.5, 100), footprints=fp)
+    assert all(c["footprints"][t] > 0.9 for t in TARGETS)  # pixel rounding of 4-30 px discs and 16 per scene
+    hidden = scene_footprints(tmp_path, [{**s, "mask_path": s["mask_path"].replace("mask", "hidden")} for s in scenes])
+    h = dataset_ceilings(scenes, particles, bounds=(0.5, 100), footprints=hidden)["footprints"]
+    assert h["d10_mm"] < 0.9 and h["d10_mm"] < h["d90_mm"]
+    assert dataset_ceilings(scenes, particles, bounds=(0.5, 100))["footprints"] is None  # no masks, no figure

@@ -101,6 +101,12 @@ def test_accuracy_table_shows_fractions_of_the_ceiling_and_the_rerender_column()
     assert net[:4] == ["net", "0.360 (50 %)", "0.900 (95 %)", "0.490 (50 %)"]
     assert net[4:7] == ["-0.500 (-69 %)", "0.450 (47 %)", "0.200 (20 %)"]
     assert all(len(r) == len(head) for r in rows)
+    # the footprint ceiling (perfect segmentation) follows, as a fraction of the visible one
+    ceiling["footprints"] = {"d10_mm": 0.36, "d50_mm": 0.855, "d90_mm": 0.49}
+    head, rows = accuracy_table(metrics, "train", ceiling)
+    assert rows[1][:4] == ["ceiling: perfect segmentation (footprints of the true masks)", "0.360 (50 %)",
+                           "0.855 (90 %)", "0.490 (50 %)"]
+    assert rows[2][0] == "net"
     # no ceiling known: plain R², no ceiling row
     head, rows = accuracy_table(metrics, "train")
     assert rows[0][1] == "0.360" and len(rows) == 1

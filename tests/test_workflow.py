@@ -66,7 +66,8 @@ def test_tiny_workflow_end_to_end(tmp_path):
     assert copied.read_bytes() == (src / "poses.parquet").read_bytes()
     assert "takes its settled poses from" in (res / "again" / "logs" / "simulate" / "again-000000.log").read_text()
     for ds in ("train", "ood", "again"):
-        assert json.loads((res / ds / "ceiling.json").read_text())["n_scenes"] >= 1
+        ceiling = json.loads((res / ds / "ceiling.json").read_text())
+        assert ceiling["n_scenes"] >= 1 and "footprints" in ceiling
     ood = pq.read_table(res / "ood" / "manifest" / "scenes")
     assert ood.column("split").to_pylist() == ["test"] and ood.column("shape_type").to_pylist() == ["granule"]
     parts = pq.read_table(res / "train" / "manifest" / "particles")

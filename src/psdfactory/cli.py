@@ -110,12 +110,13 @@ def cmd_ceiling(a: argparse.Namespace) -> None:
     from .learn.ceiling import ceilings_from_manifests
 
     p = _params(a.params)
-    c = ceilings_from_manifests(a.scenes, a.particles, tuple(p["bounds"]), p["visible_min_px"], p.get("folds", 5))
+    c = ceilings_from_manifests(a.scenes, a.particles, tuple(p["bounds"]), p["visible_min_px"], p.get("folds", 5),
+                                results_root=Path(a.results) if a.results else None)
     c["dataset"] = a.dataset
     write_json(Path(a.out), c)
-    for kind in ("visible", "sampling"):
-        if c[kind]:
-            logger.info(f"{a.dataset}: {kind} ceiling R² " + " / ".join(f"{v:.3f}" for v in c[kind].values()))
+    for kind in ("visible", "footprints", "sampling"):
+        if c.get(kind):
+            logger.info(f"{a.dataset}: {kind.removesuffix('s')} ceiling R² " + " / ".join(f"{v:.3f}" for v in c[kind].values()))
     if c.get("note"):
         logger.info(f"{a.dataset}: {c['note']}")
 
@@ -233,6 +234,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", required=True)
     p.add_argument("--scenes", nargs="+", required=True, metavar="PARQUET", help="the dataset's scene manifest shards")
     p.add_argument("--particles", nargs="+", required=True, metavar="PARQUET", help="its particle manifest shards")
+    p.add_argument("--results", help="the results root the manifests' mask paths are relative to: also compute the "
+                   "footprint ceiling (the instance read-out on the true masks)")
     p.add_argument("--out", required=True, help="ceiling.json")
     p.set_defaults(func=cmd_ceiling)
 

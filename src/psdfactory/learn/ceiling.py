@@ -4,21 +4,35 @@
   TRUE sieve sizes of the particles the camera sees (at least ``visible_min_px`` pixels in
   ``mask.png``): their d10/d50/d90, mean and count. A perfect measurement of every visible
   particle gives this much; hidden fines and the particles under the top layer cost the rest.
+- **footprint ceiling** (perfect segmentation): the instance estimator's own read-out
+  (`readout.fit_readout` of `particles.instance_stats`, min Feret) fitted to the footprints of
+  the TRUE masks. What measuring each visible footprint gives with no segmentation error: a
+  partly hidden grain shows a smaller footprint than its sieve size, which the visible-particle
+  ceiling (true sizes) does not pay for. The gap between the two is the cost of measuring
+  footprints; the gap between it and the instance estimator is the cost of its segmentation.
 - **sampling ceiling** (where the generator's μ and σ vary between scenes): the labels read out
   from the generator's own population percentiles (the truncated normal's d10/d50/d90) and μ, σ.
   It measures how much a scene's ~N particles scatter around the distribution they were drawn
   from; a model that beats it reads the actual particles, not the recipe.
 
-Both are R² per target (d10, d50, d90), out-of-fold over k folds of a dataset's scenes. Pure
+All are R² per target (d10, d50, d90), out-of-fold over k folds of a dataset's scenes. Pure
 numpy/scipy: no torch.
 """
 
 from __future__ import annotations
 
+import logging
+import time
+from pathlib import Path
+
 import numpy as np
 
 from .. import PsdError
+from ..io import read_png
 from ..psd import PERCENTILES, TARGETS, weighted_percentiles
+from .particles import instance_stats, measure_instances
+
+logger = logging.getLogger(__name__)
 
 MIN_SCENES = 6  # fewer scenes than this give no meaningful cross-validated figure
 
@@ -30,6 +44,12 @@ def visible_features(sizes: np.ndarray, visible_px: np.ndarray, min_px: int = 1)
     if seen.size == 0:
         return np.full(5, np.nan)
     return np.array([*weighted_percentiles(seen, None), seen.mean(), np.log1p(seen.size)])
+
+
+def footprint_features(mask: np.ndarray, mm_per_px: float) -> np.ndarray:
+    """The instance estimator's statistics (`instance_stats`, min Feret) of a true instance mask:
+    what it would measure of this image with a perfect segmentation."""
+    return instance_stats(measure_instances(mask, mm_per_px))
 
 
 def sampling_features(mean: np.ndarray, sigma: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
@@ -74,18 +94,27 @@ def cross_validated_r2(x: np.ndarray, y: np.ndarray, folds: int = 5, ridge: floa
 
 
 def dataset_ceilings(scenes: list[dict], particles: dict[str, tuple[np.ndarray, np.ndarray]],
-                     bounds: tuple[float, float], visible_min_px: int = 1, folds: int = 5) -> dict:
-    """Both ceilings of one dataset. `scenes`: manifest rows (scene_id, labels, size_mean,
-    size_sigma); `particles`: scene_id → (true sizes, visible pixels)."""
+                     bounds: tuple[float, float], visible_min_px: int = 1, folds: int = 5,
+                     footprints: dict[str, np.ndarray] | None = None) -> dict:
+    """The ceilings of one dataset. `scenes`: manifest rows (scene_id, labels, size_mean,
+    size_sigma); `particles`: scene_id → (true sizes, visible pixels); `footprints`: scene_id →
+    `footprint_features` of its mask (no footprint ceiling without)."""
+    from .readout import fit_readout
+
     y = np.array([[s[t] for t in TARGETS] for s in scenes], float)
     out: dict = {"n_scenes": len(scenes), "targets": list(TARGETS), "folds": folds,
                  "label_sd_mm": dict(zip(TARGETS, y.std(axis=0).round(4).tolist(), strict=True))}
     if len(scenes) < MIN_SCENES:
         out["note"] = f"{len(scenes)} scenes: too few for a cross-validated ceiling (needs {MIN_SCENES})"
-        out["visible"] = out["sampling"] = None
+        out["visible"] = out["sampling"] = out["footprints"] = None
         return out
     xv = np.stack([visible_features(*particles[s["scene_id"]], min_px=visible_min_px) for s in scenes])
     out["visible"] = dict(zip(TARGETS, cross_validated_r2(xv, y, folds).tolist(), strict=True))
+    out["footprints"] = None
+    if footprints is not None:
+        xf = np.stack([footprints[s["scene_id"]] for s in scenes])
+        cv = fit_readout(xf, y, folds=folds)["cv_r2"]
+        out["footprints"] = dict(zip(TARGETS, cv, strict=True))
     mean, sigma = (np.array([s[k] for s in scenes], float) for k in ("size_mean", "size_sigma"))
     if np.ptp(mean) > 0 or np.ptp(sigma) > 0:
         xs = sampling_features(mean, sigma, bounds)
@@ -95,9 +124,22 @@ def dataset_ceilings(scenes: list[dict], particles: dict[str, tuple[np.ndarray, 
     return out
 
 
+def scene_footprints(results_root: Path, scenes: list[dict], every_s: float = 30.0) -> dict[str, np.ndarray]:
+    """`footprint_features` of each scene's mask.png (paths in the manifest rows, relative to the
+    results root), with a progress line every `every_s` seconds."""
+    out, t0, last = {}, time.monotonic(), time.monotonic()
+    for i, s in enumerate(scenes, 1):
+        out[s["scene_id"]] = footprint_features(read_png(Path(results_root) / s["mask_path"]), float(s["mm_per_px"]))
+        if time.monotonic() - last > every_s and i < len(scenes):
+            last, rate = time.monotonic(), i / (time.monotonic() - t0)
+            logger.info(f"footprints: {i}/{len(scenes)} masks measured, {rate:.1f}/s, ETA {(len(scenes) - i) / rate:.0f} s")
+    return out
+
+
 def ceilings_from_manifests(scene_shards: list, particle_shards: list, bounds: tuple[float, float],
-                            visible_min_px: int = 1, folds: int = 5) -> dict:
-    """`dataset_ceilings` of the scenes in these manifest shards (Parquet files)."""
+                            visible_min_px: int = 1, folds: int = 5, results_root: Path | None = None) -> dict:
+    """`dataset_ceilings` of the scenes in these manifest shards (Parquet files); with
+    `results_root` also the footprint ceiling, from the scenes' masks."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -113,4 +155,5 @@ def ceilings_from_manifests(scene_shards: list, particle_shards: list, bounds: t
     if missing:
         raise PsdError(f"the particle manifest has no rows for {len(missing)} scenes (e.g. {missing[0]}); "
                        "rerun the manifest jobs")
-    return dataset_ceilings(scenes, particles, bounds, visible_min_px, folds)
+    footprints = scene_footprints(results_root, scenes) if results_root is not None else None
+    return dataset_ceilings(scenes, particles, bounds, visible_min_px, folds, footprints)
