@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from psdfactory import PsdError
+from psdfactory.io import write_png
 from psdfactory.learn.ceiling import (
     cross_validated_r2,
     dataset_ceilings,
@@ -12,7 +13,6 @@ from psdfactory.learn.ceiling import (
     scene_footprints,
     visible_features,
 )
-from psdfactory.io import write_png
 from psdfactory.learn.particles import STAT_NAMES
 from psdfactory.psd import TARGETS, weighted_percentiles
 

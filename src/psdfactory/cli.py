@@ -116,7 +116,8 @@ def cmd_ceiling(a: argparse.Namespace) -> None:
     write_json(Path(a.out), c)
     for kind in ("visible", "footprints", "sampling"):
         if c.get(kind):
-            logger.info(f"{a.dataset}: {kind.removesuffix('s')} ceiling R² " + " / ".join(f"{v:.3f}" for v in c[kind].values()))
+            r2 = " / ".join(f"{v:.3f}" for v in c[kind].values())
+            logger.info(f"{a.dataset}: {kind.removesuffix('s')} ceiling R² {r2}")
     if c.get("note"):
         logger.info(f"{a.dataset}: {c['note']}")
 

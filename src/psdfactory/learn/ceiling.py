@@ -132,7 +132,8 @@ def scene_footprints(results_root: Path, scenes: list[dict], every_s: float = 30
         out[s["scene_id"]] = footprint_features(read_png(Path(results_root) / s["mask_path"]), float(s["mm_per_px"]))
         if time.monotonic() - last > every_s and i < len(scenes):
             last, rate = time.monotonic(), i / (time.monotonic() - t0)
-            logger.info(f"footprints: {i}/{len(scenes)} masks measured, {rate:.1f}/s, ETA {(len(scenes) - i) / rate:.0f} s")
+            eta = (len(scenes) - i) / rate
+            logger.info(f"footprints: {i}/{len(scenes)} masks measured, {rate:.1f}/s, ETA {eta:.0f} s")
     return out
 
 
