@@ -6,13 +6,13 @@ import pytest
 from psdfactory import PsdError
 from psdfactory.io import write_png
 from psdfactory.learn.ceiling import (
-    cross_validated_r2,
     dataset_ceilings,
     footprint_features,
     sampling_features,
     scene_footprints,
     visible_features,
 )
+from psdfactory.learn.metrics import cross_validated_r2
 from psdfactory.learn.particles import STAT_NAMES
 from psdfactory.psd import TARGETS, weighted_percentiles
 

@@ -30,12 +30,11 @@ import numpy as np
 from .. import PsdError
 from ..io import read_png
 from ..psd import PERCENTILES, TARGETS, weighted_percentiles
+from .metrics import MIN_SCENES, cross_validated_r2
 from .particles import instance_stats, measure_instances
+from .readout import fit_readout
 
 logger = logging.getLogger(__name__)
-
-MIN_SCENES = 6  # fewer scenes than this give no meaningful cross-validated figure
-
 
 def visible_features(sizes: np.ndarray, visible_px: np.ndarray, min_px: int = 1) -> np.ndarray:
     """[d10, d50, d90, mean, log(1 + count)] of the true sizes of the visible particles
@@ -62,44 +61,12 @@ def sampling_features(mean: np.ndarray, sigma: np.ndarray, bounds: tuple[float, 
     return np.column_stack([pop, mean, sigma])
 
 
-def r2_scores(y: np.ndarray, pred: np.ndarray) -> np.ndarray:
-    """R² per column."""
-    ss_res = ((y - pred) ** 2).sum(axis=0)
-    ss_tot = ((y - y.mean(axis=0)) ** 2).sum(axis=0)
-    return 1.0 - ss_res / np.where(ss_tot > 0, ss_tot, np.nan)
-
-
-def cross_validated_r2(x: np.ndarray, y: np.ndarray, folds: int = 5, ridge: float = 1e-3, seed: int = 0) -> np.ndarray:
-    """Out-of-fold R² per target of a ridge-regularised linear read-out of `y` (N×T) from `x`
-    (N×F); features standardised on each training fold. Rows with a NaN feature are dropped."""
-    x, y = np.asarray(x, float), np.asarray(y, float)
-    ok = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
-    x, y = x[ok], y[ok]
-    n = len(y)
-    if n < MIN_SCENES:
-        raise PsdError(f"{n} usable scenes: a cross-validated ceiling needs at least {MIN_SCENES}")
-    order = np.random.default_rng(seed).permutation(n)
-    pred = np.empty_like(y)
-    for k in range(min(folds, n)):
-        test = order[k::min(folds, n)]
-        train = np.setdiff1d(order, test)
-        mu, sd = x[train].mean(axis=0), x[train].std(axis=0)
-        sd[sd == 0] = 1.0
-        a = np.column_stack([np.ones(len(train)), (x[train] - mu) / sd])
-        reg = ridge * len(train) * np.eye(a.shape[1])
-        reg[0, 0] = 0.0  # no penalty on the intercept
-        w = np.linalg.solve(a.T @ a + reg, a.T @ y[train])
-        pred[test] = np.column_stack([np.ones(len(test)), (x[test] - mu) / sd]) @ w
-    return r2_scores(y, pred)
-
-
 def dataset_ceilings(scenes: list[dict], particles: dict[str, tuple[np.ndarray, np.ndarray]],
                      bounds: tuple[float, float], visible_min_px: int = 1, folds: int = 5,
                      footprints: dict[str, np.ndarray] | None = None) -> dict:
     """The ceilings of one dataset. `scenes`: manifest rows (scene_id, labels, size_mean,
     size_sigma); `particles`: scene_id → (true sizes, visible pixels); `footprints`: scene_id →
     `footprint_features` of its mask (no footprint ceiling without)."""
-    from .readout import fit_readout
 
     y = np.array([[s[t] for t in TARGETS] for s in scenes], float)
     out: dict = {"n_scenes": len(scenes), "targets": list(TARGETS), "folds": folds,

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import PsdError
 from ..psd import NAMES
+
+MIN_SCENES = 6  # fewer scenes than this give no meaningful cross-validated figure
 
 
 def r2(y: np.ndarray, p: np.ndarray) -> float:
@@ -39,3 +42,34 @@ def regression_metrics(y_true: np.ndarray, y_pred: np.ndarray) -> dict:
     out["mean_r2"] = float(np.mean([out[n]["r2"] for n in NAMES]))
     out["order_violations"] = float(np.mean((p[:, 0] > p[:, 1]) | (p[:, 1] > p[:, 2])))
     return out
+
+
+def r2_scores(y: np.ndarray, pred: np.ndarray) -> np.ndarray:
+    """R² per column."""
+    ss_res = ((y - pred) ** 2).sum(axis=0)
+    ss_tot = ((y - y.mean(axis=0)) ** 2).sum(axis=0)
+    return 1.0 - ss_res / np.where(ss_tot > 0, ss_tot, np.nan)
+
+
+def cross_validated_r2(x: np.ndarray, y: np.ndarray, folds: int = 5, ridge: float = 1e-3, seed: int = 0) -> np.ndarray:
+    """Out-of-fold R² per target of a ridge-regularised linear read-out of `y` (N×T) from `x`
+    (N×F); features standardised on each training fold. Rows with a NaN feature are dropped."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    ok = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
+    x, y = x[ok], y[ok]
+    n = len(y)
+    if n < MIN_SCENES:
+        raise PsdError(f"{n} usable scenes: a cross-validated ceiling needs at least {MIN_SCENES}")
+    order = np.random.default_rng(seed).permutation(n)
+    pred = np.empty_like(y)
+    for k in range(min(folds, n)):
+        test = order[k::min(folds, n)]
+        train = np.setdiff1d(order, test)
+        mu, sd = x[train].mean(axis=0), x[train].std(axis=0)
+        sd[sd == 0] = 1.0
+        a = np.column_stack([np.ones(len(train)), (x[train] - mu) / sd])
+        reg = ridge * len(train) * np.eye(a.shape[1])
+        reg[0, 0] = 0.0  # no penalty on the intercept
+        w = np.linalg.solve(a.T @ a + reg, a.T @ y[train])
+        pred[test] = np.column_stack([np.ones(len(test)), (x[test] - mu) / sd]) @ w
+    return r2_scores(y, pred)

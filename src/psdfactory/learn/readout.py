@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .metrics import MIN_SCENES, cross_validated_r2
 from .particles import READOUT_FEATURES, STAT_NAMES
 
 READOUT_ALPHAS = (1e-3, 1e-2, 1e-1, 1.0)  # ridge strengths (× N scenes) tried by cross-validation
@@ -29,8 +30,6 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
     columns `features` are used), as plain lists: NaN features imputed with the training means,
     features standardised, the ridge strength (× N) picked by k-fold cross-validated mean R²
     where there are enough scenes."""
-    from .ceiling import MIN_SCENES, cross_validated_r2
-
     x, y = readout_columns(x, features), np.asarray(y, float)
     fill = np.nanmean(np.where(np.isfinite(x), x, np.nan), axis=0) if len(x) else np.zeros(x.shape[1])
     fill = np.where(np.isfinite(fill), fill, 0.0)
