@@ -55,7 +55,7 @@ def main() -> None:
     cfg = psd_config.load_config(Path(a.config))
     root = Path(a.results)
     ds = psd_config.main_training_dataset(cfg)
-    evals = [d for d in cfg["datasets"] if (root / d / "manifest" / "scenes").is_dir()]
+    evals = [d for d in psd_config.evaluation_datasets(cfg) if (root / d / "manifest" / "scenes").is_dir()]
     print(f"CPU: {detect().summary()}; {torch.get_num_threads()} threads")
     ceilings = {}
     for d in evals:
