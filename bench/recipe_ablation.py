@@ -20,8 +20,10 @@ import json
 import time
 from pathlib import Path
 
-STEPS = {  # name → train-setting overrides
+STEPS = {  # name → train-setting overrides ("instances": the instance estimator's own, merged into its slice)
     "baseline": {},
+    "onecycle": {"lr_schedule": "onecycle"},
+    "onecycle-3x": {"lr_schedule": "onecycle", "lr": 0.001, "instances": {"lr": 0.003}},
     "scale": {"scale_augment": [0.8, 1.25]},
     "photometric": {"photometric": 1.0},
     "scale+photometric": {"scale_augment": [0.8, 1.25], "photometric": 1.0},
@@ -36,7 +38,7 @@ def main() -> None:
     from psdfactory.learn.capability import detect
     from psdfactory.learn.ceiling import ceilings_from_manifests
     from psdfactory.learn.evaluate import evaluate
-    from psdfactory.learn.train import TrainParams, train
+    from psdfactory.learn.train import train_from_params
     from psdfactory.psd import NAMES
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -69,12 +71,17 @@ def main() -> None:
     out = {"arch": a.arch, "ceilings": ceilings, "steps": {}}
     for step in a.steps:
         p = psd_config.train_params(cfg, a.arch)
-        p.update(STEPS[step])
+        for k, v in STEPS[step].items():
+            if k == "instances":
+                if "instances" in p:
+                    p["instances"] = {**p["instances"], **v}
+            else:
+                p[k] = v
         if a.epochs:
             p["epochs"] = a.epochs
         work = Path(a.work) / step
         t0 = time.perf_counter()
-        train(TrainParams.from_dict(p), root, work)
+        train_from_params(p, root, work)
         minutes = (time.perf_counter() - t0) / 60
         res = evaluate(work / "model.pt", root, evals, work / "eval", precision="fp32")
         out["steps"][step] = {"overrides": STEPS[step], "train_minutes": minutes,

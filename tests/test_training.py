@@ -591,3 +591,61 @@ def test_optimise_step_steps_and_names_the_lr_key_when_the_loss_diverges():
     with pytest.raises(PsdError, match="lower train.instances.lr"):
         optimise_step(model, opt, x, lambda out: out.sum() * float("nan"), torch.device("cpu"), "fp32",
                       "train.instances.lr")
+
+
+def test_onecycle_rises_to_lr_then_falls_to_a_thousandth_over_exactly_the_budgeted_steps():
+    from psdfactory import PsdError
+    from psdfactory.learn.runtime import LrSchedule
+
+    opt = torch.optim.Adam(torch.nn.Linear(2, 1).parameters(), lr=1e-3)
+    sched = LrSchedule(opt, "onecycle", epochs=4, steps_per_epoch=25, lr_factor=0.5, lr_patience=1)
+    lrs = [opt.param_groups[0]["lr"]]
+    for _ in range(4):
+        for _ in range(25):
+            opt.step()
+            sched.after_step()
+            lrs.append(opt.param_groups[0]["lr"])
+        sched.after_epoch(1.0)  # the validation loss does not move a one-cycle schedule
+    peak = int(np.argmax(lrs))
+    assert lrs[0] == pytest.approx(1e-4) and max(lrs) == pytest.approx(1e-3)
+    assert 10 <= peak <= 20  # 15 % of the 100 steps
+    assert lrs[-1] == pytest.approx(1e-6, rel=0.05) and np.all(np.diff(lrs[peak:]) <= 0)
+    sched.after_step()  # a step past the budget (e.g. a last short batch) keeps the final rate
+    assert opt.param_groups[0]["lr"] == pytest.approx(lrs[-1])
+
+    opt = torch.optim.Adam(torch.nn.Linear(2, 1).parameters(), lr=1e-3)
+    plateau = LrSchedule(opt, "plateau", epochs=4, steps_per_epoch=25, lr_factor=0.5, lr_patience=1)
+    plateau.after_step()
+    for loss in (1.0, 1.0, 1.0):
+        plateau.after_epoch(loss)
+    assert opt.param_groups[0]["lr"] == pytest.approx(5e-4)
+    with pytest.raises(PsdError, match="train.lr_schedule must be one of plateau, onecycle"):
+        LrSchedule(opt, "cosine", 4, 25, 0.5, 1)
+
+
+def test_onecycle_training_resumes_to_the_same_losses(dataset, tmp_path, monkeypatch):
+    import csv
+
+    from psdfactory.learn import train as train_mod
+
+    straight = tmp_path / "straight"
+    train_mod.train(params(lr_schedule="onecycle", epochs=3), dataset, straight)
+    real, calls = train_mod.run_epoch, {"n": 0}
+
+    def crash_on_second(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(train_mod, "run_epoch", crash_on_second)
+    out = tmp_path / "resumed"
+    with pytest.raises(KeyboardInterrupt):
+        train_mod.train(params(lr_schedule="onecycle", epochs=3), dataset, out)
+    monkeypatch.setattr(train_mod, "run_epoch", real)
+    train_mod.train(params(lr_schedule="onecycle", epochs=3), dataset, out)
+    rows = [list(csv.DictReader(open(d / "history.csv"))) for d in (straight, out)]
+    np.testing.assert_allclose([float(r["train_loss"]) for r in rows[1]], [float(r["train_loss"]) for r in rows[0]],
+                               rtol=1e-5)
+    np.testing.assert_allclose([float(r["lr"]) for r in rows[1]], [float(r["lr"]) for r in rows[0]])
+    assert float(rows[0][-1]["lr"]) < float(rows[0][0]["lr"]) / 10  # decayed by the last epoch

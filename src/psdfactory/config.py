@@ -412,8 +412,8 @@ def main_training_dataset(config: dict) -> str:
 def train_params(config: dict, arch: str) -> dict:
     t = config["train"]
     keys = ("datasets", "pretrained", "epochs", "batch_size", "lr", "weight_decay", "lr_factor", "lr_patience",
-            "early_stopping_patience", "precision", "device", "aux_loss_weight", "augment", "scale_augment",
-            "photometric")
+            "lr_schedule", "early_stopping_patience", "precision", "device", "aux_loss_weight", "augment",
+            "scale_augment", "photometric")
     out = {k: t[k] for k in keys}
     size = t["input_size"].get(arch, default_input_size(arch))
     out.update(arch=arch, seed=config["seed"], input_size=int(size))

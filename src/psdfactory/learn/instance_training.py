@@ -96,7 +96,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     from .data import normalise, training_rows
     from .data import targets as label_targets
     from .models import count_parameters
-    from .runtime import optimise_step, pick_device, pick_precision, save_model
+    from .runtime import LrSchedule, optimise_step, pick_device, pick_precision, save_model
 
     torch.manual_seed(params.seed)
     np.random.seed(params.seed % 2**32)
@@ -118,11 +118,12 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     logger.info(f"training {ARCH} ({TRUNK} trunk + U-Net decoder, {n_params / 1e6:.2f} M parameters, weights: "
         f"{weights_used}) on {len(train_rows)} train / {len(val_rows)} val scenes of {', '.join(params.datasets)}: "
         f"{settings.crops_per_image} random "
-        f"{crop}-px crops per image and epoch, {device} {precision}, {params.epochs} epochs, lr {settings.lr}, "
+        f"{crop}-px crops per image and epoch, {device} {precision}, {params.epochs} epochs, lr {settings.lr} "
+        f"({params.lr_schedule}), "
         f"boundary weight {pw:.1f} (targets made in {time.perf_counter() - t_load:.1f} s)")
     opt = torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=params.weight_decay)
-    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, mode="min", factor=params.lr_factor,
-                                                       patience=params.lr_patience)
+    steps_per_epoch = math.ceil(len(x_train) * settings.crops_per_image / params.batch_size)
+    sched = LrSchedule(opt, params.lr_schedule, params.epochs, steps_per_epoch, params.lr_factor, params.lr_patience)
     gen = torch.Generator().manual_seed(params.seed)
     history: list[dict] = []
     best, best_epoch, best_state, stale = math.inf, -1, None, 0
@@ -142,13 +143,14 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
                 x, t = normalise(x.to(device)), t.to(device)
                 loss = optimise_step(model, opt, x, lambda out, t=t: instance_loss(out, t, pw)[0], device, precision,
                                      "train.instances.lr")
+                sched.after_step()
                 total += loss * len(x)
                 n += len(x)
                 bar.update(len(x))
                 bar.set_postfix(loss=f"{total / n:.4f}")
         train_loss = total / max(n, 1)
         val_loss = _val_loss(model, x_val, t_val, device, precision, pw)
-        sched.step(val_loss)
+        sched.after_epoch(val_loss)
         lr = opt.param_groups[0]["lr"]
         row = {"epoch": epoch + 1, "train_loss": train_loss, "val_loss": val_loss, "val_mae_mm": float("nan"), "lr": lr,
                "seconds": time.perf_counter() - t0}

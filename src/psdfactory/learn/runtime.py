@@ -66,6 +66,47 @@ def optimise_step(model: nn.Module, opt: torch.optim.Optimizer, x: torch.Tensor,
     return float(loss.detach())
 
 
+LR_SCHEDULES = ("plateau", "onecycle")
+ONECYCLE_WARMUP = 0.15  # share of the steps spent rising to train.lr
+ONECYCLE_START_DIV, ONECYCLE_FINAL_DIV = 10.0, 100.0  # starts at lr / 10, ends at lr / 10 / 100
+
+
+class LrSchedule:
+    """`train.lr_schedule`: ``plateau`` (the paper's: ReduceLROnPlateau on the validation loss,
+    stepped once per epoch) or ``onecycle`` (torch's OneCycleLR over every step of
+    `train.epochs`: a rise from lr/10 to lr over the first 15 % of the steps, then a cosine decay
+    to lr/1000 — the schedule for a fixed budget of steps, stepped after every batch)."""
+
+    def __init__(self, opt: torch.optim.Optimizer, name: str, epochs: int, steps_per_epoch: int,
+                 lr_factor: float, lr_patience: int):
+        if name not in LR_SCHEDULES:
+            raise PsdError(f"train.lr_schedule must be one of {', '.join(LR_SCHEDULES)}, got {name!r}")
+        self.name = name
+        if name == "plateau":
+            self.sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, mode="min", factor=lr_factor,
+                                                                    patience=lr_patience)
+        else:
+            self.sched = torch.optim.lr_scheduler.OneCycleLR(
+                opt, max_lr=[g["lr"] for g in opt.param_groups], total_steps=max(epochs * steps_per_epoch, 1),
+                pct_start=ONECYCLE_WARMUP, anneal_strategy="cos", div_factor=ONECYCLE_START_DIV,
+                final_div_factor=ONECYCLE_FINAL_DIV)
+
+    def after_step(self) -> None:
+        # the last of the budgeted steps runs at the final rate; a step past it keeps that rate
+        if self.name == "onecycle" and self.sched.last_epoch < self.sched.total_steps - 1:
+            self.sched.step()
+
+    def after_epoch(self, val_loss: float) -> None:
+        if self.name == "plateau":
+            self.sched.step(val_loss)
+
+    def state_dict(self) -> dict:
+        return self.sched.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.sched.load_state_dict(state)
+
+
 def faster_cpu_precision(model: nn.Module, size: int, batch: int, stats: TargetStats, aux_weight: float) -> str:
     """bf16 autocast or fp32 for CPU training, whichever trains this model faster here.
 

@@ -1,6 +1,7 @@
 """Training of one architecture on a dataset's train/val splits (the paper's recipe by default).
 
-MSE on standardised targets, Adam, ReduceLROnPlateau on the validation loss, random 90°
+MSE on standardised targets, Adam, ReduceLROnPlateau on the validation loss (or a one-cycle
+schedule, `train.lr_schedule`), random 90°
 rotations and flips, early stopping; best checkpoint kept, resumable from the last one.
 """
 
@@ -27,6 +28,7 @@ from .augment import augment_d4, photometric, rescale
 from .data import SceneImages, normalise, training_rows
 from .models import TargetStats, build_model, count_parameters, inception_aux_fits, input_size
 from .runtime import (
+    LrSchedule,
     faster_cpu_precision,
     load_checkpoint,
     loss_fn,
@@ -56,6 +58,7 @@ class TrainParams:
     weight_decay: float
     lr_factor: float
     lr_patience: int
+    lr_schedule: str  # plateau | onecycle (runtime.LrSchedule)
     early_stopping_patience: int
     input_size: int  # train.input_size[arch], else config.default_input_size(arch)
     precision: str  # auto | fp32 | bf16 | fp16
@@ -100,7 +103,8 @@ class History:
                 w.writerow({k: r[k] for k in keys})
 
 
-def run_epoch(model, loader, stats, opt, device, precision, aux_weight, gen, params: TrainParams, bar=None) -> float:
+def run_epoch(model, loader, stats, opt, sched, device, precision, aux_weight, gen, params: TrainParams,
+              bar=None) -> float:
     model.train()
     total, n = 0.0, 0
     for x, y in loader:
@@ -114,6 +118,7 @@ def run_epoch(model, loader, stats, opt, device, precision, aux_weight, gen, par
         y = stats.standardise(y.to(device))
         loss = optimise_step(model, opt, x, lambda out, y=y: loss_fn(out, y, stats, aux_weight), device, precision,
                              "train.lr")
+        sched.after_step()
         total += loss * len(x)
         n += len(x)
         if bar is not None:
@@ -164,12 +169,12 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
         precision = faster_cpu_precision(model, size, min(params.batch_size, len(train_ds)), stats,
                                          params.aux_loss_weight)
     opt = torch.optim.Adam(model.parameters(), lr=params.lr, weight_decay=params.weight_decay)
-    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, mode="min", factor=params.lr_factor,
-                                                       patience=params.lr_patience)
     gen = torch.Generator().manual_seed(params.seed)
     loader_gen = torch.Generator().manual_seed(params.seed + 1)
     train_loader = torch.utils.data.DataLoader(train_ds, batch_size=params.batch_size, shuffle=True,
                                                generator=loader_gen)
+    sched = LrSchedule(opt, params.lr_schedule, params.epochs, len(train_loader), params.lr_factor,
+                       params.lr_patience)
     val_loader = torch.utils.data.DataLoader(val_ds, batch_size=params.batch_size)
 
     ckpt_dir = out_dir / "checkpoints"
@@ -217,12 +222,12 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
         t0 = time.perf_counter()
         with tqdm(total=len(train_ds), desc=f"{params.arch} epoch {epoch + 1}/{params.epochs}", unit="img",
                   mininterval=2.0, leave=True, disable=not logger.isEnabledFor(logging.INFO)) as bar:
-            train_loss = run_epoch(model, train_loader, stats, opt, device, precision, params.aux_loss_weight, gen,
-                                   params, bar)
+            train_loss = run_epoch(model, train_loader, stats, opt, sched, device, precision,
+                                   params.aux_loss_weight, gen, params, bar)
         pred, y = predict_batches(model, val_loader, device, precision)
         val_loss = float(nn.functional.mse_loss(stats.standardise(pred), stats.standardise(y)))
         val_mae = float((pred - y).abs().mean())
-        sched.step(val_loss)
+        sched.after_epoch(val_loss)
         lr = opt.param_groups[0]["lr"]
         row = {"epoch": epoch + 1, "train_loss": train_loss, "val_loss": val_loss, "val_mae_mm": val_mae, "lr": lr,
                "seconds": time.perf_counter() - t0}
