@@ -57,18 +57,26 @@ def main() -> None:
     cfg = psd_config.load_config(Path(a.config))
     root = Path(a.results)
     ds = psd_config.main_training_dataset(cfg)
-    evals = [d for d in psd_config.evaluation_datasets(cfg) if (root / d / "manifest" / "scenes").is_dir()]
     print(f"CPU: {detect().summary()}; {torch.get_num_threads()} threads")
-    ceilings = {}
-    for d in evals:
-        m = root / d / "manifest"
-        c = ceilings_from_manifests(sorted((m / "scenes").glob("*.parquet")),
-                                    sorted((m / "particles").glob("*.parquet")),
-                                    tuple(cfg["datasets"][d]["size"]["bounds"]), cfg["labels"]["visible_min_px"])
-        ceilings[d] = c["visible"]
-        if c["visible"]:
-            print(f"{d}: visible-particle ceiling R² " + " / ".join(f"{v:.3f}" for v in c["visible"].values()))
-    out = {"arch": a.arch, "ceilings": ceilings, "steps": {}}
+    out: dict = {"arch": a.arch, "ceilings": {}, "steps": {}}
+    evals: list[str] = []
+
+    def scored_datasets() -> list[str]:
+        """The evaluated datasets whose manifests exist when the first model is trained (the
+        scenes may still be in the making when training starts), with their ceilings."""
+        if not evals:
+            evals.extend(d for d in psd_config.evaluation_datasets(cfg) if (root / d / "manifest" / "scenes").is_dir())
+            for d in evals:
+                m = root / d / "manifest"
+                c = ceilings_from_manifests(sorted((m / "scenes").glob("*.parquet")),
+                                            sorted((m / "particles").glob("*.parquet")),
+                                            tuple(cfg["datasets"][d]["size"]["bounds"]),
+                                            cfg["labels"]["visible_min_px"])
+                out["ceilings"][d] = c["visible"]
+                if c["visible"]:
+                    print(f"{d}: visible-particle ceiling R² " + " / ".join(f"{v:.3f}" for v in c["visible"].values()))
+        return evals
+
     for step in a.steps:
         p = psd_config.train_params(cfg, a.arch)
         for k, v in STEPS[step].items():
@@ -83,7 +91,7 @@ def main() -> None:
         t0 = time.perf_counter()
         train_from_params(p, root, work)
         minutes = (time.perf_counter() - t0) / 60
-        res = evaluate(work / "model.pt", root, evals, work / "eval", precision="fp32")
+        res = evaluate(work / "model.pt", root, scored_datasets(), work / "eval", precision="fp32")
         out["steps"][step] = {"overrides": STEPS[step], "train_minutes": minutes,
                               "r2": {d: {n: res["datasets"][d][n]["r2"] for n in NAMES} for d in evals}}
         print(f"== {step}: trained in {minutes:.1f} min")
@@ -97,7 +105,7 @@ def main() -> None:
     for step, r in out["steps"].items():
         cells = []
         for d in evals:
-            c = ceilings.get(d) or {}
+            c = out["ceilings"].get(d) or {}
             cells.append(" / ".join(f"{r['r2'][d][n]:.2f}" + (f" ({100 * r['r2'][d][n] / c[n + '_mm']:.0f} %)"
                                                                 if c.get(n + "_mm", 0) > 0 else "")
                                     for n in NAMES))
