@@ -24,6 +24,8 @@ STEPS = {  # name → train-setting overrides ("instances": the instance estimat
     "baseline": {},
     "onecycle": {"lr_schedule": "onecycle"},
     "onecycle-3x": {"lr_schedule": "onecycle", "lr": 0.001, "instances": {"lr": 0.003}},
+    "size-cells": {"size_cells": 1.0},
+    "onecycle-3x+size-cells": {"lr_schedule": "onecycle", "lr": 0.001, "size_cells": 1.0},
     "scale": {"scale_augment": [0.8, 1.25]},
     "photometric": {"photometric": 1.0},
     "scale+photometric": {"scale_augment": [0.8, 1.25], "photometric": 1.0},

@@ -649,3 +649,40 @@ def test_onecycle_training_resumes_to_the_same_losses(dataset, tmp_path, monkeyp
                                rtol=1e-5)
     np.testing.assert_allclose([float(r["lr"]) for r in rows[1]], [float(r["lr"]) for r in rows[0]])
     assert float(rows[0][-1]["lr"]) < float(rows[0][0]["lr"]) / 10  # decayed by the last epoch
+
+
+def test_size_cells_train_a_plain_regressor_and_resume(dataset, tmp_path, monkeypatch):
+    import csv
+
+    from psdfactory.learn import train as train_mod
+    from psdfactory.learn.runtime import load_checkpoint, load_model
+
+    p = params(size_cells=1.0, epochs=3, input_size=64)
+    straight = tmp_path / "straight"
+    summary = train_mod.train(p, dataset, straight)
+    assert summary["params"]["size_cells"] == 1.0
+    state = load_checkpoint(straight / "model.pt")["state_dict"]
+    assert not any("cell" in k for k in state)  # the head is for training only
+    model, meta = load_model(straight / "model.pt")
+    assert model(torch.zeros(1, 3, 64, 64)).shape == (1, 3)
+    plain = tmp_path / "plain"
+    train_mod.train(params(epochs=3, input_size=64), dataset, plain)
+    losses = [[float(r["train_loss"]) for r in csv.DictReader(open(d / "history.csv"))] for d in (straight, plain)]
+    assert all(a > b for a, b in zip(*losses, strict=True))  # the size-histogram loss is added
+
+    real, calls = train_mod.run_epoch, {"n": 0}
+
+    def crash_on_second(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(train_mod, "run_epoch", crash_on_second)
+    out = tmp_path / "resumed"
+    with pytest.raises(KeyboardInterrupt):
+        train_mod.train(p, dataset, out)
+    monkeypatch.setattr(train_mod, "run_epoch", real)
+    train_mod.train(p, dataset, out)
+    resumed = [float(r["train_loss"]) for r in csv.DictReader(open(out / "history.csv"))]
+    np.testing.assert_allclose(resumed, losses[0], rtol=1e-5)

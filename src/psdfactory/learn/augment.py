@@ -10,7 +10,8 @@
   contrast, gamma, white balance, colour saturation, a grey image, blur and sensor noise — so a
   model learns sizes, not one renderer's colours.
 
-All take and return uint8 N×3×S×S batches (rescale also the N×3 labels), draw from a
+All take and return uint8 N×3×S×S batches (rescale also the N×3 labels, and a fourth channel of
+size codes, `size_cells`, with d4 and rescale), draw from a
 ``torch.Generator`` (reproducible), and run per image on the CPU in a few ms.
 """
 
@@ -37,14 +38,21 @@ def _resize(img: torch.Tensor, size: int) -> torch.Tensor:
 
 
 def rescale_one(img: torch.Tensor, s: float, gen: torch.Generator) -> tuple[torch.Tensor, float]:
-    """One uint8 3×S×S image magnified by about `s` (same size out) → (image, the exact factor)."""
+    """One uint8 C×S×S image magnified by about `s` (same size out) → (image, the exact factor).
+    A fourth channel is a size-code map (`size_cells`): cropped and padded as the image, resized
+    by nearest neighbour and its codes shifted by the factor."""
+    from .size_cells import shift_codes
+
     size = img.shape[-1]
-    x = img.float()
+    codes = img[3:4].float() if img.shape[0] == 4 else None
+    x = img[:3].float()
     if s >= 1.0:
         c = max(8, min(size, round(size / s)))
         r0, c0 = (int(torch.randint(0, size - c + 1, (1,), generator=gen)) for _ in range(2))
         out = _resize(x[:, r0 : r0 + c, c0 : c0 + c], size)
         factor = size / c
+        if codes is not None:
+            codes = F.interpolate(codes[None, :, r0 : r0 + c, c0 : c0 + c], size=(size, size), mode="nearest")[0]
     else:
         r = max(8, min(size, round(size * s)))
         small = _resize(x, r)
@@ -53,7 +61,13 @@ def rescale_one(img: torch.Tensor, s: float, gen: torch.Generator) -> tuple[torc
         # mirrored at the edges: one reflection suffices for s > 1/2 (each pad is shorter than r)
         out = F.pad(small[None], (left, pad - left, top, pad - top), mode="reflect")[0]
         factor = r / size
-    return out.round().clamp(0, 255).to(torch.uint8), factor
+        if codes is not None:
+            codes = F.interpolate(codes[None], size=(r, r), mode="nearest")
+            codes = F.pad(codes, (left, pad - left, top, pad - top), mode="reflect")[0]
+    out = out.round().clamp(0, 255).to(torch.uint8)
+    if codes is not None:
+        out = torch.cat([out, shift_codes(codes.to(torch.uint8), factor)])
+    return out, factor
 
 
 def rescale(batch: torch.Tensor, y_mm: torch.Tensor, scale: tuple[float, float],

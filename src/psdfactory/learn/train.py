@@ -67,6 +67,7 @@ class TrainParams:
     augment: bool
     scale_augment: tuple[float, float]
     photometric: float
+    size_cells: float  # weight of the dense size-histogram loss (learn.size_cells); 0 = off
     seed: int  # the config's seed
 
     @classmethod
@@ -103,8 +104,26 @@ class History:
                 w.writerow({k: r[k] for k in keys})
 
 
+@dataclass
+class SizeCells:
+    """The dense size-histogram task of `learn.size_cells` while training: the tap on the
+    backbone's last feature map, the head that reads it, and the loss weight."""
+
+    tap: object
+    head: nn.Module
+    weight: float
+
+    def loss(self, codes: torch.Tensor) -> torch.Tensor:
+        from .size_cells import cell_loss, cell_targets
+
+        f = self.tap.features
+        return self.weight * cell_loss(self.head(f), cell_targets(codes.to(f.device), tuple(f.shape[-2:])))
+
+
 def run_epoch(model, loader, stats, opt, sched, device, precision, aux_weight, gen, params: TrainParams,
-              bar=None) -> float:
+              bar=None, cells: SizeCells | None = None) -> float:
+    """One pass over the training images; with `cells` the loader's images carry size codes as a
+    fourth channel (augmented with the image) and the size-histogram loss is added."""
     model.train()
     total, n = 0.0, 0
     for x, y in loader:
@@ -112,12 +131,18 @@ def run_epoch(model, loader, stats, opt, sched, device, precision, aux_weight, g
             x = augment_d4(x, gen)
         if tuple(params.scale_augment) != (1.0, 1.0):
             x, y = rescale(x, y, tuple(params.scale_augment), gen)
+        codes = x[:, 3] if cells is not None else None
+        x = x[:, :3]
         if params.photometric > 0:
             x = photometric(x, gen, params.photometric)
         x = normalise(x.to(device)).contiguous(memory_format=torch.channels_last)
         y = stats.standardise(y.to(device))
-        loss = optimise_step(model, opt, x, lambda out, y=y: loss_fn(out, y, stats, aux_weight), device, precision,
-                             "train.lr")
+
+        def loss_of(out, y=y, codes=codes):
+            loss = loss_fn(out, y, stats, aux_weight)
+            return loss if cells is None else loss + cells.loss(codes)
+
+        loss = optimise_step(model, opt, x, loss_of, device, precision, "train.lr")
         sched.after_step()
         total += loss * len(x)
         n += len(x)
@@ -128,7 +153,7 @@ def run_epoch(model, loader, stats, opt, sched, device, precision, aux_weight, g
 
 
 def resume_state(fp: str, epoch: int, model, opt, sched, gen: torch.Generator, loader_gen: torch.Generator,
-                 history: History, best: float, best_epoch: int, stale: int) -> dict:
+                 history: History, best: float, best_epoch: int, stale: int, cells: SizeCells | None = None) -> dict:
     """What checkpoints/last.pt holds to resume training exactly: tensors and plain data only
     (state dicts, the generators' ByteTensor states), so that it loads with weights_only=True."""
     return {
@@ -136,6 +161,7 @@ def resume_state(fp: str, epoch: int, model, opt, sched, gen: torch.Generator, l
         "scheduler": sched.state_dict(), "gen": gen.get_state(), "loader_gen": loader_gen.get_state(),
         "torch_rng": torch.get_rng_state(), "history": history.rows, "best": float(best),
         "best_epoch": int(best_epoch), "stale": int(stale),
+        "cell_head": cells.head.state_dict() if cells is not None else None,
     }
 
 
@@ -168,11 +194,20 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
     if params.precision == "auto" and precision == "bf16" and device.type == "cpu":
         precision = faster_cpu_precision(model, size, min(params.batch_size, len(train_ds)), stats,
                                          params.aux_loss_weight)
-    opt = torch.optim.Adam(model.parameters(), lr=params.lr, weight_decay=params.weight_decay)
+    cells, fed = None, train_ds
+    if params.size_cells > 0:  # the dense size-histogram task: a head on the last feature map, training only
+        from .instances import read_particles
+        from .size_cells import CellHead, FeatureTap, ScenesWithSizeCodes, feature_channels
+
+        tap = FeatureTap(model, params.arch)
+        cells = SizeCells(tap, CellHead(feature_channels(model, tap, size)).to(device), params.size_cells)
+        particles = {k: v for ds in params.datasets for k, v in read_particles(results_root, ds).items()}
+        fed = ScenesWithSizeCodes(train_ds, particles)
+    trained = list(model.parameters()) + (list(cells.head.parameters()) if cells is not None else [])
+    opt = torch.optim.Adam(trained, lr=params.lr, weight_decay=params.weight_decay)
     gen = torch.Generator().manual_seed(params.seed)
     loader_gen = torch.Generator().manual_seed(params.seed + 1)
-    train_loader = torch.utils.data.DataLoader(train_ds, batch_size=params.batch_size, shuffle=True,
-                                               generator=loader_gen)
+    train_loader = torch.utils.data.DataLoader(fed, batch_size=params.batch_size, shuffle=True, generator=loader_gen)
     sched = LrSchedule(opt, params.lr_schedule, params.epochs, len(train_loader), params.lr_factor,
                        params.lr_patience)
     val_loader = torch.utils.data.DataLoader(val_ds, batch_size=params.batch_size)
@@ -186,6 +221,8 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
         ck = load_checkpoint(last_path, "training checkpoint")
         if ck.get("fingerprint") == fp:
             model.load_state_dict(ck["model"])
+            if cells is not None:
+                cells.head.load_state_dict(ck["cell_head"])
             opt.load_state_dict(ck["optimizer"])
             sched.load_state_dict(ck["scheduler"])
             gen.set_state(ck["gen"])
@@ -223,7 +260,7 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
         with tqdm(total=len(train_ds), desc=f"{params.arch} epoch {epoch + 1}/{params.epochs}", unit="img",
                   mininterval=2.0, leave=True, disable=not logger.isEnabledFor(logging.INFO)) as bar:
             train_loss = run_epoch(model, train_loader, stats, opt, sched, device, precision,
-                                   params.aux_loss_weight, gen, params, bar)
+                                   params.aux_loss_weight, gen, params, bar, cells)
         pred, y = predict_batches(model, val_loader, device, precision)
         val_loss = float(nn.functional.mse_loss(stats.standardise(pred), stats.standardise(y)))
         val_mae = float((pred - y).abs().mean())
@@ -243,12 +280,14 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
         logger.info(f"epoch {epoch + 1}: train loss {train_loss:.4f}, val loss {val_loss:.4f}, "
                     f"val MAE {val_mae:.3f} mm, lr {lr:.2e}, {row['seconds']:.0f} s{' (best)' if improved else ''}")
         write_torch(last_path, resume_state(fp, epoch, model, opt, sched, gen, loader_gen, history, best, best_epoch,
-                                            stale))
+                                            stale, cells))
         history.write_csv(out_dir / "history.csv")
         if stale >= params.early_stopping_patience:
             stop_reason = f"early stopping (no better val loss for {stale} epochs)"
             break
     tb.close()
+    if cells is not None:
+        cells.tap.remove()
     if best_epoch < 0:
         raise PsdError("no epoch was trained (train.epochs must be ≥ 1)")
     best_ckpt = load_checkpoint(ckpt_dir / "best.pt", "training checkpoint")
