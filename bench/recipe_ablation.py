@@ -25,11 +25,23 @@ STEPS = {  # name → train-setting overrides ("instances": the instance estimat
     "onecycle": {"lr_schedule": "onecycle"},
     "onecycle-3x": {"lr_schedule": "onecycle", "lr": 0.001, "instances": {"lr": 0.003}},
     "size-cells": {"size_cells": 1.0},
-    "onecycle-3x+size-cells": {"lr_schedule": "onecycle", "lr": 0.001, "size_cells": 1.0},
     "scale": {"scale_augment": [0.8, 1.25]},
     "photometric": {"photometric": 1.0},
-    "scale+photometric": {"scale_augment": [0.8, 1.25], "photometric": 1.0},
+    "epochs-30": {"epochs": 30},
+    "epochs-40": {"epochs": 40},
 }
+# a step may join several with "+" (e.g. onecycle-3x+size-cells): their overrides together
+
+
+def step_overrides(step: str) -> dict:
+    """The overrides of a step: one of STEPS, or several joined with '+'."""
+    out: dict = {}
+    for part in step.split("+"):
+        if part not in STEPS:
+            raise SystemExit(f"unknown step {part!r} in {step!r}: one of {', '.join(STEPS)}, joined with '+'")
+        for k, v in STEPS[part].items():
+            out[k] = {**out.get(k, {}), **v} if isinstance(v, dict) else v
+    return out
 
 
 def main() -> None:
@@ -47,7 +59,8 @@ def main() -> None:
     ap.add_argument("--results", required=True)
     ap.add_argument("--config", default="config/config.yaml")
     ap.add_argument("--arch", default="efficientnet_b0")
-    ap.add_argument("--steps", nargs="+", default=list(STEPS), choices=list(STEPS))
+    ap.add_argument("--steps", nargs="+", default=["baseline", "scale", "photometric", "scale+photometric"],
+                    help=f"steps to train, each one of {', '.join(STEPS)} or several joined with '+'")
     ap.add_argument("--epochs", type=int, help="override train.epochs")
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--work", default="bench/out/ablation", help="models are written here")
@@ -81,7 +94,7 @@ def main() -> None:
 
     for step in a.steps:
         p = psd_config.train_params(cfg, a.arch)
-        for k, v in STEPS[step].items():
+        for k, v in step_overrides(step).items():
             if k == "instances":
                 if "instances" in p:
                     p["instances"] = {**p["instances"], **v}
@@ -94,7 +107,7 @@ def main() -> None:
         train_from_params(p, root, work)
         minutes = (time.perf_counter() - t0) / 60
         res = evaluate(work / "model.pt", root, scored_datasets(), work / "eval", precision="fp32")
-        out["steps"][step] = {"overrides": STEPS[step], "train_minutes": minutes,
+        out["steps"][step] = {"overrides": step_overrides(step), "train_minutes": minutes,
                               "r2": {d: {n: res["datasets"][d][n]["r2"] for n in NAMES} for d in evals}}
         print(f"== {step}: trained in {minutes:.1f} min")
         if a.out:
