@@ -67,6 +67,11 @@ def test_d4_and_rescale_move_the_codes_with_the_image():
     bright, coded = out[0, 0] > 100, out[0, 3] > 0
     assert f == pytest.approx(2.0) and (bright == coded).float().mean() > 0.95
     assert set(out[0, 3][coded].tolist()) == {65 + 16}  # twice as large: one octave up
+    out, y = rescale(img, torch.tensor([[1.0, 2.0, 3.0]]), (0.7, 0.7), gen)  # shrunk, the edges mirrored
+    f = float(y[0, 0])
+    bright, coded = out[0, 0] > 100, out[0, 3] > 0
+    assert f < 0.75 and (bright == coded).float().mean() > 0.9  # all but the antialiased edges
+    assert set(out[0, 3][coded].tolist()) == {65 + round(16 * np.log2(f))}
 
 
 def test_the_head_reads_the_tapped_feature_map_and_learns_the_cells():
