@@ -686,3 +686,6 @@ def test_size_cells_train_a_plain_regressor_and_resume(dataset, tmp_path, monkey
     train_mod.train(p, dataset, out)
     resumed = [float(r["train_loss"]) for r in csv.DictReader(open(out / "history.csv"))]
     np.testing.assert_allclose(resumed, losses[0], rtol=1e-5)
+    # under bf16 autocast (what precision: auto picks where bf16 is faster) the head reads fp32 features
+    train_mod.train(params(size_cells=1.0, epochs=1, input_size=64, precision="bf16"), dataset, tmp_path / "bf16")
+    assert (tmp_path / "bf16" / "model.pt").is_file()

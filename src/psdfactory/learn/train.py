@@ -116,7 +116,7 @@ class SizeCells:
     def loss(self, codes: torch.Tensor) -> torch.Tensor:
         from .size_cells import cell_loss, cell_targets
 
-        f = self.tap.features
+        f = self.tap.features.float()  # in fp32 whatever the backbone's autocast precision
         return self.weight * cell_loss(self.head(f), cell_targets(codes.to(f.device), tuple(f.shape[-2:])))
 
 
