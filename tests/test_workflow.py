@@ -35,6 +35,7 @@ TINY = {
     "render": {"resolution": 48},
     "train": {
         "epochs": 1, "batch_size": 2, "precision": "fp32", "pretrained": "none",
+        "lr_schedule": "onecycle", "size_cells": 1.0,  # the default config's recipe
         "architectures": ["resnet50", "inception_v3", "efficientnet_b0", "instances"],
         "input_size": {"resnet50": 32, "inception_v3": 75, "efficientnet_b0": 32, "instances": 32},
     },
