@@ -10,7 +10,12 @@ default config, plus the `train_cycles` re-render):
         --arch efficientnet_b0 --steps baseline scale photometric scale+photometric --out bench/out/ablation.json
 
 Each step trains from scratch with the config's training settings plus the step's overrides
-(seeded: the same step gives the same figures on the same machine).
+(seeded: the same step gives the same figures on the same machine). Steps join with '+'
+(`onecycle-3x+size-cells`). Two arms side by side on 2 cores, one thread each, as the README's
+table was measured (a config with an `unseen` dataset and its Cycles re-render scores those too):
+
+    for s in baseline onecycle-3x; do .venv/bin/python bench/recipe_ablation.py --results results \
+        --arch instances --steps $s --threads 1 --work bench/out/ablation --out bench/out/$s.json & done
 """
 
 from __future__ import annotations
