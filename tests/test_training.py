@@ -623,13 +623,10 @@ def test_onecycle_rises_to_lr_then_falls_to_a_thousandth_over_exactly_the_budget
         LrSchedule(opt, "cosine", 4, 25, 0.5, 1)
 
 
-def test_onecycle_training_resumes_to_the_same_losses(dataset, tmp_path, monkeypatch):
-    import csv
-
+def interrupted_then_resumed(p, dataset, out, monkeypatch):
+    """Train with `p` into `out`, interrupted in the second epoch, then run again (it resumes)."""
     from psdfactory.learn import train as train_mod
 
-    straight = tmp_path / "straight"
-    train_mod.train(params(lr_schedule="onecycle", epochs=3), dataset, straight)
     real, calls = train_mod.run_epoch, {"n": 0}
 
     def crash_on_second(*a, **k):
@@ -639,11 +636,22 @@ def test_onecycle_training_resumes_to_the_same_losses(dataset, tmp_path, monkeyp
         return real(*a, **k)
 
     monkeypatch.setattr(train_mod, "run_epoch", crash_on_second)
-    out = tmp_path / "resumed"
     with pytest.raises(KeyboardInterrupt):
-        train_mod.train(params(lr_schedule="onecycle", epochs=3), dataset, out)
+        train_mod.train(p, dataset, out)
     monkeypatch.setattr(train_mod, "run_epoch", real)
-    train_mod.train(params(lr_schedule="onecycle", epochs=3), dataset, out)
+    train_mod.train(p, dataset, out)
+    return out
+
+
+def test_onecycle_training_resumes_to_the_same_losses(dataset, tmp_path, monkeypatch):
+    import csv
+
+    from psdfactory.learn import train as train_mod
+
+    straight = tmp_path / "straight"
+    train_mod.train(params(lr_schedule="onecycle", epochs=3), dataset, straight)
+    out = interrupted_then_resumed(params(lr_schedule="onecycle", epochs=3), dataset, tmp_path / "resumed",
+                                   monkeypatch)
     rows = [list(csv.DictReader(open(d / "history.csv"))) for d in (straight, out)]
     np.testing.assert_allclose([float(r["train_loss"]) for r in rows[1]], [float(r["train_loss"]) for r in rows[0]],
                                rtol=1e-5)
@@ -670,20 +678,7 @@ def test_size_cells_train_a_plain_regressor_and_resume(dataset, tmp_path, monkey
     losses = [[float(r["train_loss"]) for r in csv.DictReader(open(d / "history.csv"))] for d in (straight, plain)]
     assert all(a > b for a, b in zip(*losses, strict=True))  # the size-histogram loss is added
 
-    real, calls = train_mod.run_epoch, {"n": 0}
-
-    def crash_on_second(*a, **k):
-        calls["n"] += 1
-        if calls["n"] == 2:
-            raise KeyboardInterrupt
-        return real(*a, **k)
-
-    monkeypatch.setattr(train_mod, "run_epoch", crash_on_second)
-    out = tmp_path / "resumed"
-    with pytest.raises(KeyboardInterrupt):
-        train_mod.train(p, dataset, out)
-    monkeypatch.setattr(train_mod, "run_epoch", real)
-    train_mod.train(p, dataset, out)
+    out = interrupted_then_resumed(p, dataset, tmp_path / "resumed", monkeypatch)
     resumed = [float(r["train_loss"]) for r in csv.DictReader(open(out / "history.csv"))]
     np.testing.assert_allclose(resumed, losses[0], rtol=1e-5)
     # under bf16 autocast (what precision: auto picks where bf16 is faster) the head reads fp32 features
