@@ -301,6 +301,16 @@ def dataset_shards(table):
     return lambda wildcards: shard_files(wildcards.dataset, table)
 
 
+def ceiling_reference_shards(table):
+    """A re-render's source dataset's shards, where its ceilings fit their read-outs ([] else)."""
+
+    def shards(wildcards):
+        ref = psd_config.ceiling_reference(config, wildcards.dataset)
+        return shard_files(ref["dataset"], table) if ref else []
+
+    return shards
+
+
 def missing_scene_files(ds):
     """Files missing from scene folders that exist: deleted by hand, so name them as targets.
 

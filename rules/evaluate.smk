@@ -37,10 +37,13 @@ rule evaluate:
 rule ceiling:
     """What the dataset's images allow: labels read out from the true sizes of the visible
     particles, from the footprints of the true masks (and from the generator's own
-    distribution), cross-validated, per target."""
+    distribution), cross-validated, per target (a re-render's: fitted on its source's other
+    scenes)."""
     input:
         scenes=dataset_shards("scenes"),
         particles=dataset_shards("particles"),
+        reference_scenes=ceiling_reference_shards("scenes"),
+        reference_particles=ceiling_reference_shards("particles"),
     output:
         f"{RESULTS}/{{dataset}}/ceiling.json",
     log:
@@ -52,4 +55,5 @@ rule ceiling:
         results=results_param,
     shell:
         "psdfactory --log {log:q} ceiling --params {params.stage:q} --dataset {wildcards.dataset} --scenes {input.scenes:q}"
-        " --particles {input.particles:q} --results {params.results:q} --out {output:q}"
+        " --particles {input.particles:q} --reference-scenes {input.reference_scenes:q}"
+        " --reference-particles {input.reference_particles:q} --results {params.results:q} --out {output:q}"

@@ -129,3 +129,37 @@ def test_footprint_ceiling_is_perfect_when_every_grain_shows_its_whole_footprint
     h = dataset_ceilings(scenes, particles, bounds=(0.5, 100), footprints=hidden)["footprints"]
     assert h["d10_mm"] < 0.9 and h["d10_mm"] < h["d90_mm"]
     assert dataset_ceilings(scenes, particles, bounds=(0.5, 100))["footprints"] is None  # no masks, no figure
+
+
+def test_a_re_renders_few_scenes_are_scored_by_a_read_out_fitted_on_its_sources_other_scenes():
+    from psdfactory.learn.ceiling import SceneSet
+    from psdfactory.learn.metrics import fitted_r2
+
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((500, 2))
+    y = np.column_stack([3 * x[:, 0] - 1, x[:, 1] + 0.5 * rng.standard_normal(500)])
+    r2 = fitted_r2(x[:400], y[:400], x[400:], y[400:])
+    assert r2[0] == pytest.approx(1.0, abs=1e-3) and r2[1] == pytest.approx(0.8, abs=0.06)  # 1 / (1 + 0.25)
+
+    # 4 scenes alone cannot be cross-validated; fitted on 60 others of the same distribution they
+    # are scored, and with every particle visible the visible-particle read-out is exact
+    few, few_particles = _scenes(4, seed=5)
+    many, many_particles = _scenes(60, seed=6)
+    assert dataset_ceilings(few, few_particles, bounds=(0.5, 100))["visible"] is None
+    c = dataset_ceilings(few, few_particles, bounds=(0.5, 100),
+                         reference=SceneSet(many, many_particles, name="train (train, val)"))
+    assert [c["visible"][t] for t in TARGETS] == pytest.approx([1.0, 1.0, 1.0], abs=1e-2)
+    assert c["fitted_on"] == {"dataset": "train (train, val)", "n_scenes": 60} and c["footprints"] is None
+
+
+def test_the_config_fits_a_re_renders_ceilings_on_its_sources_other_splits():
+    from psdfactory import config as psd_config
+    from tests.conftest import tiny_config
+
+    cfg = tiny_config(n_scenes=40)  # the default split: train, val and test scenes
+    cfg["datasets"]["again"] = {"rerender_of": {"dataset": "tiny", "split": "test"}, "render": {}}
+    cfg["datasets"]["every"] = {"rerender_of": {"dataset": "tiny", "split": ["train", "val", "test"]}, "render": {}}
+    psd_config.validate(cfg)
+    assert psd_config.ceiling_params(cfg, "again")["reference"] == {"dataset": "tiny", "splits": ["train", "val"]}
+    assert psd_config.ceiling_params(cfg, "every")["reference"] is None  # nothing else to fit on: cross-validated
+    assert psd_config.ceiling_params(cfg, "tiny")["reference"] is None

@@ -110,8 +110,14 @@ def cmd_ceiling(a: argparse.Namespace) -> None:
     from .learn.ceiling import ceilings_from_manifests
 
     p = _params(a.params)
+    reference = None
+    if p.get("reference"):
+        if not a.reference_scenes or not a.reference_particles:
+            raise PsdError(f"{a.dataset}: its ceilings are fitted on {p['reference']['dataset']}'s scenes: "
+                           "give that dataset's manifest shards with --reference-scenes and --reference-particles")
+        reference = {**p["reference"], "scenes": a.reference_scenes, "particles": a.reference_particles}
     c = ceilings_from_manifests(a.scenes, a.particles, tuple(p["bounds"]), p["visible_min_px"], p.get("folds", 5),
-                                results_root=Path(a.results) if a.results else None)
+                                results_root=Path(a.results) if a.results else None, reference=reference)
     c["dataset"] = a.dataset
     write_json(Path(a.out), c)
     for kind in ("visible", "footprints", "sampling"):
@@ -237,6 +243,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--particles", nargs="+", required=True, metavar="PARQUET", help="its particle manifest shards")
     p.add_argument("--results", help="the results root the manifests' mask paths are relative to: also compute the "
                    "footprint ceiling (the instance read-out on the true masks)")
+    p.add_argument("--reference-scenes", nargs="*", default=[], metavar="PARQUET",
+                   help="a re-render's source dataset's scene shards: the read-outs are fitted on its scenes "
+                   "of the splits in params' reference (the re-render's are too few to cross-validate)")
+    p.add_argument("--reference-particles", nargs="*", default=[], metavar="PARQUET", help="its particle shards")
     p.add_argument("--out", required=True, help="ceiling.json")
     p.set_defaults(func=cmd_ceiling)
 

@@ -364,10 +364,23 @@ def compare_params(config: dict) -> dict:
     return copy.deepcopy(config["render"])
 
 
+def ceiling_reference(config: dict, dataset: str) -> dict | None:
+    """Where a dataset's ceilings fit their read-outs when not by cross-validation on its own
+    scenes: a re-render's source dataset, in the splits the re-render does not take (e.g. the 124
+    training scenes for a re-render of the 14 test scenes). None for other datasets, and for a
+    re-render that takes every split of its source."""
+    ds = config["datasets"][dataset]
+    if "rerender_of" not in ds:
+        return None
+    source = ds["rerender_of"]["dataset"]
+    others = sorted(dataset_splits(config, source) - set(rerender_splits(ds)))
+    return {"dataset": source, "splits": others} if others else None
+
+
 def ceiling_params(config: dict, dataset: str) -> dict:
     """What a dataset's ceiling depends on besides its manifests."""
     return {"bounds": list(config["datasets"][dataset]["size"]["bounds"]),
-            "visible_min_px": config["labels"]["visible_min_px"]}
+            "visible_min_px": config["labels"]["visible_min_px"], "reference": ceiling_reference(config, dataset)}
 
 
 def manifest_params(config: dict, dataset: str) -> dict:

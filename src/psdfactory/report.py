@@ -112,6 +112,9 @@ def accuracy_table(metrics: dict[str, dict], dataset: str, ceiling: dict | None 
         if c:
             cells = [_fmt(c[f"{n}_mm"], 3) if kind == "visible" else _r2_of_ceiling(c[f"{n}_mm"], vis.get(f"{n}_mm"))
                      for n in NAMES]
+            fitted = (ceiling or {}).get("fitted_on")
+            if fitted:  # a re-render's: read-outs fitted on its source's other scenes
+                what += f" (fitted on {fitted['n_scenes']} scenes of {fitted['dataset']})"
             rows.append([what] + cells + ["–"] * (width - 4))
     for arch, m in metrics.items():
         d = m["datasets"].get(dataset)
@@ -146,7 +149,9 @@ ACCURACY_NOTE = ("Labels are the number-weighted d10/d50/d90 (the paper's), eval
                  "footprints of the TRUE masks: a perfect segmentation, measured as the estimator measures (a partly "
                  "hidden grain shows less than its sieve size). Where the generator's μ and σ vary, the sampling "
                  "ceiling (labels read from μ, σ "
-                 "alone) shows how much a scene's particles scatter around their distribution. A re-render "
+                 "alone) shows how much a scene's particles scatter around their distribution. A re-render's "
+                 "ceilings are fitted on its source dataset's other scenes (its few scenes would make a "
+                 "cross-validation unstable) and scored on its own, as a model is. A re-render "
                  "column is the same test scenes rendered by another renderer: how far the model measures "
                  "particles rather than one renderer's look. 'Overall' pools the three targets as the paper's "
                  "table 2 does; it reads high for any model that knows d10 < d50 < d90.")

@@ -15,14 +15,18 @@
   It measures how much a scene's ~N particles scatter around the distribution they were drawn
   from; a model that beats it reads the actual particles, not the recipe.
 
-All are R² per target (d10, d50, d90), out-of-fold over k folds of a dataset's scenes. Pure
-numpy/scipy: no torch.
+All are R² per target (d10, d50, d90), out-of-fold over k folds of a dataset's scenes — or, for
+a re-render of another dataset's scenes (too few, e.g. 14 test scenes, for a stable
+cross-validation), with the read-outs fitted on the source dataset's other scenes (its training
+split: the same distribution, the same particles' sizes) and scored on the re-render's, as a model
+is. Pure numpy/scipy: no torch.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,9 +34,9 @@ import numpy as np
 from .. import PsdError
 from ..io import read_png
 from ..psd import PERCENTILES, TARGETS, weighted_percentiles
-from .metrics import MIN_SCENES, cross_validated_r2
+from .metrics import MIN_SCENES, cross_validated_r2, fitted_r2, r2_scores
 from .particles import instance_stats, measure_instances
-from .readout import fit_readout
+from .readout import apply_readout, fit_readout
 
 logger = logging.getLogger(__name__)
 
@@ -61,31 +65,73 @@ def sampling_features(mean: np.ndarray, sigma: np.ndarray, bounds: tuple[float, 
     return np.column_stack([pop, mean, sigma])
 
 
+@dataclass
+class SceneSet:
+    """Scenes with what the ceilings read of them: manifest rows (scene_id, labels, size_mean,
+    size_sigma), scene_id → (true sizes, visible pixels), and scene_id → `footprint_features` of
+    its mask (None: no footprint ceiling)."""
+
+    scenes: list[dict]
+    particles: dict[str, tuple[np.ndarray, np.ndarray]]
+    footprints: dict[str, np.ndarray] | None = None
+    name: str = ""
+
+    def labels(self) -> np.ndarray:
+        return np.array([[s[t] for t in TARGETS] for s in self.scenes], float).reshape(-1, len(TARGETS))
+
+    def visible(self, min_px: int) -> np.ndarray:
+        return np.stack([visible_features(*self.particles[s["scene_id"]], min_px=min_px) for s in self.scenes])
+
+    def footprint(self) -> np.ndarray:
+        return np.stack([self.footprints[s["scene_id"]] for s in self.scenes])
+
+    def sampling(self, bounds: tuple[float, float]) -> np.ndarray:
+        mean, sigma = (np.array([s[k] for s in self.scenes], float) for k in ("size_mean", "size_sigma"))
+        return sampling_features(mean, sigma, bounds)
+
+    def generator_varies(self) -> bool:
+        return any(np.ptp([s[k] for s in self.scenes]) > 0 for k in ("size_mean", "size_sigma"))
+
+
 def dataset_ceilings(scenes: list[dict], particles: dict[str, tuple[np.ndarray, np.ndarray]],
                      bounds: tuple[float, float], visible_min_px: int = 1, folds: int = 5,
-                     footprints: dict[str, np.ndarray] | None = None) -> dict:
+                     footprints: dict[str, np.ndarray] | None = None, reference: SceneSet | None = None) -> dict:
     """The ceilings of one dataset. `scenes`: manifest rows (scene_id, labels, size_mean,
     size_sigma); `particles`: scene_id → (true sizes, visible pixels); `footprints`: scene_id →
-    `footprint_features` of its mask (no footprint ceiling without)."""
-
-    y = np.array([[s[t] for t in TARGETS] for s in scenes], float)
+    `footprint_features` of its mask (no footprint ceiling without). With `reference` (other
+    scenes of the same distribution, footprints where these have them) the read-outs are fitted
+    on those and scored on these scenes instead of cross-validated."""
+    here = SceneSet(scenes, particles, footprints)
+    y = here.labels()
     out: dict = {"n_scenes": len(scenes), "targets": list(TARGETS), "folds": folds,
                  "label_sd_mm": dict(zip(TARGETS, y.std(axis=0).round(4).tolist(), strict=True))}
-    if len(scenes) < MIN_SCENES:
+    fit_on = reference if reference is not None and len(reference.scenes) >= MIN_SCENES else None
+    if fit_on is None and len(scenes) < MIN_SCENES:
         out["note"] = f"{len(scenes)} scenes: too few for a cross-validated ceiling (needs {MIN_SCENES})"
         out["visible"] = out["sampling"] = out["footprints"] = None
         return out
-    xv = np.stack([visible_features(*particles[s["scene_id"]], min_px=visible_min_px) for s in scenes])
-    out["visible"] = dict(zip(TARGETS, cross_validated_r2(xv, y, folds).tolist(), strict=True))
+    if fit_on is not None:
+        out["fitted_on"] = {"dataset": fit_on.name, "n_scenes": len(fit_on.scenes)}
+        y_fit = fit_on.labels()
+
+        def r2_of(x_fit: np.ndarray, x: np.ndarray) -> list[float]:
+            return fitted_r2(x_fit, y_fit, x, y).tolist()
+    else:
+        def r2_of(x_fit: np.ndarray, x: np.ndarray) -> list[float]:
+            return cross_validated_r2(x, y, folds).tolist()
+
+    src = fit_on or here
+    out["visible"] = dict(zip(TARGETS, r2_of(src.visible(visible_min_px), here.visible(visible_min_px)), strict=True))
     out["footprints"] = None
-    if footprints is not None:
-        xf = np.stack([footprints[s["scene_id"]] for s in scenes])
-        cv = fit_readout(xf, y, folds=folds)["cv_r2"]
-        out["footprints"] = dict(zip(TARGETS, cv, strict=True))
-    mean, sigma = (np.array([s[k] for s in scenes], float) for k in ("size_mean", "size_sigma"))
-    if np.ptp(mean) > 0 or np.ptp(sigma) > 0:
-        xs = sampling_features(mean, sigma, bounds)
-        out["sampling"] = dict(zip(TARGETS, cross_validated_r2(xs, y, folds).tolist(), strict=True))
+    if footprints is not None and src.footprints is not None:
+        if fit_on is not None:
+            pred = apply_readout(fit_readout(fit_on.footprint(), y_fit, folds=folds), here.footprint())
+            r2f = r2_scores(y, pred).tolist()
+        else:
+            r2f = fit_readout(here.footprint(), y, folds=folds)["cv_r2"]
+        out["footprints"] = dict(zip(TARGETS, r2f, strict=True))
+    if src.generator_varies():
+        out["sampling"] = dict(zip(TARGETS, r2_of(src.sampling(bounds), here.sampling(bounds)), strict=True))
     else:
         out["sampling"] = None  # one fixed distribution: the labels differ by sampling noise alone
     return out
@@ -104,14 +150,16 @@ def scene_footprints(results_root: Path, scenes: list[dict], every_s: float = 30
     return out
 
 
-def ceilings_from_manifests(scene_shards: list, particle_shards: list, bounds: tuple[float, float],
-                            visible_min_px: int = 1, folds: int = 5, results_root: Path | None = None) -> dict:
-    """`dataset_ceilings` of the scenes in these manifest shards (Parquet files); with
-    `results_root` also the footprint ceiling, from the scenes' masks."""
+def read_scene_set(scene_shards: list, particle_shards: list, splits: list[str] | None = None,
+                   name: str = "") -> SceneSet:
+    """The scenes of these manifest shards (those in `splits` only, if given) with their particles'
+    true sizes and visible pixels."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     scenes = pa.concat_tables([pq.read_table(f) for f in scene_shards]).to_pylist()
+    if splits is not None:
+        scenes = [s for s in scenes if s["split"] in splits]
     parts = pa.concat_tables([pq.read_table(f, columns=["scene_id", "size_mm", "visible_px"]) for f in particle_shards])
     ids = np.asarray(parts.column("scene_id").to_pylist())
     size, vis = np.asarray(parts.column("size_mm")), np.asarray(parts.column("visible_px"))
@@ -123,5 +171,23 @@ def ceilings_from_manifests(scene_shards: list, particle_shards: list, bounds: t
     if missing:
         raise PsdError(f"the particle manifest has no rows for {len(missing)} scenes (e.g. {missing[0]}); "
                        "rerun the manifest jobs")
-    footprints = scene_footprints(results_root, scenes) if results_root is not None else None
-    return dataset_ceilings(scenes, particles, bounds, visible_min_px, folds, footprints)
+    return SceneSet(scenes, particles, name=name)
+
+
+def ceilings_from_manifests(scene_shards: list, particle_shards: list, bounds: tuple[float, float],
+                            visible_min_px: int = 1, folds: int = 5, results_root: Path | None = None,
+                            reference: dict | None = None) -> dict:
+    """`dataset_ceilings` of the scenes in these manifest shards (Parquet files); with
+    `results_root` also the footprint ceiling, from the scenes' masks. `reference`
+    ({"dataset", "splits", "scenes": shards, "particles": shards}): fit the read-outs on those
+    scenes (a re-render's source dataset, the splits it does not take) and score on these."""
+    here = read_scene_set(scene_shards, particle_shards)
+    ref = None
+    if reference is not None:
+        ref = read_scene_set(reference["scenes"], reference["particles"], reference["splits"],
+                             f"{reference['dataset']} ({', '.join(reference['splits'])})")
+    if results_root is not None:
+        here.footprints = scene_footprints(results_root, here.scenes)
+        if ref is not None:
+            ref.footprints = scene_footprints(results_root, ref.scenes)
+    return dataset_ceilings(here.scenes, here.particles, bounds, visible_min_px, folds, here.footprints, ref)

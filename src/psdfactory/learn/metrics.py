@@ -51,25 +51,44 @@ def r2_scores(y: np.ndarray, pred: np.ndarray) -> np.ndarray:
     return 1.0 - ss_res / np.where(ss_tot > 0, ss_tot, np.nan)
 
 
+def ridge_predict(x_fit: np.ndarray, y_fit: np.ndarray, x: np.ndarray, ridge: float = 1e-3) -> np.ndarray:
+    """A ridge-regularised linear read-out of `y_fit` from `x_fit` (features standardised on
+    `x_fit`, the intercept unpenalised), applied to `x`."""
+    mu, sd = x_fit.mean(axis=0), x_fit.std(axis=0)
+    sd[sd == 0] = 1.0
+    a = np.column_stack([np.ones(len(x_fit)), (x_fit - mu) / sd])
+    reg = ridge * len(x_fit) * np.eye(a.shape[1])
+    reg[0, 0] = 0.0  # no penalty on the intercept
+    w = np.linalg.solve(a.T @ a + reg, a.T @ y_fit)
+    return np.column_stack([np.ones(len(x)), (x - mu) / sd]) @ w
+
+
+def _usable(x: np.ndarray, y: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    ok = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
+    if ok.sum() < MIN_SCENES:
+        raise PsdError(f"{int(ok.sum())} usable scenes: {what} needs at least {MIN_SCENES}")
+    return x[ok], y[ok]
+
+
 def cross_validated_r2(x: np.ndarray, y: np.ndarray, folds: int = 5, ridge: float = 1e-3, seed: int = 0) -> np.ndarray:
     """Out-of-fold R² per target of a ridge-regularised linear read-out of `y` (N×T) from `x`
     (N×F); features standardised on each training fold. Rows with a NaN feature are dropped."""
-    x, y = np.asarray(x, float), np.asarray(y, float)
-    ok = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
-    x, y = x[ok], y[ok]
+    x, y = _usable(x, y, "a cross-validated ceiling")
     n = len(y)
-    if n < MIN_SCENES:
-        raise PsdError(f"{n} usable scenes: a cross-validated ceiling needs at least {MIN_SCENES}")
     order = np.random.default_rng(seed).permutation(n)
     pred = np.empty_like(y)
     for k in range(min(folds, n)):
         test = order[k::min(folds, n)]
         train = np.setdiff1d(order, test)
-        mu, sd = x[train].mean(axis=0), x[train].std(axis=0)
-        sd[sd == 0] = 1.0
-        a = np.column_stack([np.ones(len(train)), (x[train] - mu) / sd])
-        reg = ridge * len(train) * np.eye(a.shape[1])
-        reg[0, 0] = 0.0  # no penalty on the intercept
-        w = np.linalg.solve(a.T @ a + reg, a.T @ y[train])
-        pred[test] = np.column_stack([np.ones(len(test)), (x[test] - mu) / sd]) @ w
+        pred[test] = ridge_predict(x[train], y[train], x[test], ridge)
     return r2_scores(y, pred)
+
+
+def fitted_r2(x_fit: np.ndarray, y_fit: np.ndarray, x: np.ndarray, y: np.ndarray, ridge: float = 1e-3) -> np.ndarray:
+    """R² per target on (x, y) of the read-out fitted on (x_fit, y_fit) — other scenes, as a model
+    is fitted on its training scenes. Rows with a NaN feature are dropped on either side."""
+    x_fit, y_fit = _usable(x_fit, y_fit, "fitting a ceiling's read-out")
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    ok = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
+    return r2_scores(y[ok], ridge_predict(x_fit, y_fit, x[ok], ridge))
