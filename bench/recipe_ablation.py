@@ -86,12 +86,16 @@ def main() -> None:
         scenes may still be in the making when training starts), with their ceilings."""
         if not evals:
             evals.extend(d for d in psd_config.evaluation_datasets(cfg) if (root / d / "manifest" / "scenes").is_dir())
+            def shards(d: str, table: str) -> list[Path]:
+                return sorted((root / d / "manifest" / table).glob("*.parquet"))
+
             for d in evals:
-                m = root / d / "manifest"
-                c = ceilings_from_manifests(sorted((m / "scenes").glob("*.parquet")),
-                                            sorted((m / "particles").glob("*.parquet")),
+                ref = psd_config.ceiling_reference(cfg, d)  # a re-render's: fitted on its source's other scenes
+                if ref:
+                    ref = {**ref, **{t: shards(ref["dataset"], t) for t in ("scenes", "particles")}}
+                c = ceilings_from_manifests(shards(d, "scenes"), shards(d, "particles"),
                                             tuple(cfg["datasets"][d]["size"]["bounds"]),
-                                            cfg["labels"]["visible_min_px"])
+                                            cfg["labels"]["visible_min_px"], reference=ref)
                 out["ceilings"][d] = c["visible"]
                 if c["visible"]:
                     print(f"{d}: visible-particle ceiling R² " + " / ".join(f"{v:.3f}" for v in c["visible"].values()))
