@@ -163,3 +163,27 @@ def test_the_config_fits_a_re_renders_ceilings_on_its_sources_other_splits():
     assert psd_config.ceiling_params(cfg, "again")["reference"] == {"dataset": "tiny", "splits": ["train", "val"]}
     assert psd_config.ceiling_params(cfg, "every")["reference"] is None  # nothing else to fit on: cross-validated
     assert psd_config.ceiling_params(cfg, "tiny")["reference"] is None
+
+
+def test_ceilings_from_manifests_fit_on_the_reference_splits_only(tmp_path):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from psdfactory.learn.ceiling import ceilings_from_manifests
+
+    def shards(name, scenes, particles, splits):
+        rows = [dict(s, split=sp) for s, sp in zip(scenes, splits, strict=True)]
+        pq.write_table(pa.Table.from_pylist(rows), tmp_path / f"{name}-scenes.parquet")
+        parts = [{"scene_id": k, "size_mm": float(z), "visible_px": int(v)}
+                 for k, (sz, vis) in particles.items() for z, v in zip(sz, vis, strict=True)]
+        pq.write_table(pa.Table.from_pylist(parts), tmp_path / f"{name}-particles.parquet")
+        return [tmp_path / f"{name}-scenes.parquet"], [tmp_path / f"{name}-particles.parquet"]
+
+    src, src_particles = _scenes(50, seed=8)
+    src_s, src_p = shards("src", src, src_particles, ["train"] * 40 + ["test"] * 10)
+    test = src[40:]
+    here_s, here_p = shards("here", test, {s["scene_id"]: src_particles[s["scene_id"]] for s in test}, ["test"] * 10)
+    c = ceilings_from_manifests(here_s, here_p, (0.5, 100),
+                                reference={"dataset": "src", "splits": ["train"], "scenes": src_s, "particles": src_p})
+    assert c["n_scenes"] == 10 and c["fitted_on"] == {"dataset": "src (train)", "n_scenes": 40}
+    assert [c["visible"][t] for t in TARGETS] == pytest.approx([1.0, 1.0, 1.0], abs=1e-2)

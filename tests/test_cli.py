@@ -142,3 +142,13 @@ def test_log_takes_the_output_and_the_verdict_reaches_the_console_too(tmp_path):
 
     r = _cli("sys.exit(cli.main(['--log', 'no/such/folder/job.log', 'check-config', 'none.yaml']))", cwd=tmp_path)
     assert r.returncode == 2 and "cannot write the log no/such/folder/job.log: No such file or directory" in r.stderr
+
+
+def test_a_re_renders_ceiling_without_its_sources_manifests_names_the_flags(tmp_path, capsys):
+    params = '{"bounds": [1, 12], "visible_min_px": 1, "reference": {"dataset": "tiny", "splits": ["train", "val"]}}'
+    args = ["ceiling", "--params", params, "--dataset", "again", "--scenes", str(tmp_path / "s.parquet"),
+            "--particles", str(tmp_path / "p.parquet"), "--out", str(tmp_path / "ceiling.json")]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "again: its ceilings are fitted on tiny's scenes" in err and "--reference-scenes" in err
+    assert not (tmp_path / "ceiling.json").exists()
