@@ -104,11 +104,10 @@ def main() -> None:
     for step in a.steps:
         p = psd_config.train_params(cfg, a.arch)
         for k, v in step_overrides(step).items():
-            if k == "instances":
-                if "instances" in p:
-                    p["instances"] = {**p["instances"], **v}
-            else:
+            if not isinstance(v, dict):
                 p[k] = v
+            elif k in p:  # a nested slice (train.instances) only where this arch has it
+                p[k] = {**p[k], **v}
         if a.epochs:
             p["epochs"] = a.epochs
         work = Path(a.work) / step

@@ -63,12 +63,18 @@ def ridge_predict(x_fit: np.ndarray, y_fit: np.ndarray, x: np.ndarray, ridge: fl
     return np.column_stack([np.ones(len(x)), (x - mu) / sd]) @ w
 
 
-def _usable(x: np.ndarray, y: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+def _finite_rows(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of (x, y) without a NaN or infinite value."""
     x, y = np.asarray(x, float), np.asarray(y, float)
     ok = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
-    if ok.sum() < MIN_SCENES:
-        raise PsdError(f"{int(ok.sum())} usable scenes: {what} needs at least {MIN_SCENES}")
     return x[ok], y[ok]
+
+
+def _usable(x: np.ndarray, y: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    x, y = _finite_rows(x, y)
+    if len(y) < MIN_SCENES:
+        raise PsdError(f"{len(y)} usable scenes: {what} needs at least {MIN_SCENES}")
+    return x, y
 
 
 def cross_validated_r2(x: np.ndarray, y: np.ndarray, folds: int = 5, ridge: float = 1e-3, seed: int = 0) -> np.ndarray:
@@ -89,6 +95,5 @@ def fitted_r2(x_fit: np.ndarray, y_fit: np.ndarray, x: np.ndarray, y: np.ndarray
     """R² per target on (x, y) of the read-out fitted on (x_fit, y_fit) — other scenes, as a model
     is fitted on its training scenes. Rows with a NaN feature are dropped on either side."""
     x_fit, y_fit = _usable(x_fit, y_fit, "fitting a ceiling's read-out")
-    x, y = np.asarray(x, float), np.asarray(y, float)
-    ok = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
-    return r2_scores(y[ok], ridge_predict(x_fit, y_fit, x[ok], ridge))
+    x, y = _finite_rows(x, y)
+    return r2_scores(y, ridge_predict(x_fit, y_fit, x, ridge))
