@@ -55,7 +55,7 @@ def main() -> None:
     from psdfactory import config as psd_config
     from psdfactory.cli import configure_logging
     from psdfactory.learn.capability import detect
-    from psdfactory.learn.ceiling import ceilings_from_manifests
+    from psdfactory.learn.ceiling import dataset_ceilings_from_config
     from psdfactory.learn.evaluate import evaluate
     from psdfactory.learn.train import train_from_params
     from psdfactory.psd import NAMES
@@ -86,16 +86,8 @@ def main() -> None:
         scenes may still be in the making when training starts), with their ceilings."""
         if not evals:
             evals.extend(d for d in psd_config.evaluation_datasets(cfg) if (root / d / "manifest" / "scenes").is_dir())
-            def shards(d: str, table: str) -> list[Path]:
-                return sorted((root / d / "manifest" / table).glob("*.parquet"))
-
             for d in evals:
-                ref = psd_config.ceiling_reference(cfg, d)  # a re-render's: fitted on its source's other scenes
-                if ref:
-                    ref = {**ref, **{t: shards(ref["dataset"], t) for t in ("scenes", "particles")}}
-                c = ceilings_from_manifests(shards(d, "scenes"), shards(d, "particles"),
-                                            tuple(cfg["datasets"][d]["size"]["bounds"]),
-                                            cfg["labels"]["visible_min_px"], reference=ref)
+                c = dataset_ceilings_from_config(cfg, root, d)
                 out["ceilings"][d] = c["visible"]
                 if c["visible"]:
                     print(f"{d}: visible-particle ceiling R² " + " / ".join(f"{v:.3f}" for v in c["visible"].values()))

@@ -187,3 +187,38 @@ def test_ceilings_from_manifests_fit_on_the_reference_splits_only(tmp_path):
                                 reference={"dataset": "src", "splits": ["train"], "scenes": src_s, "particles": src_p})
     assert c["n_scenes"] == 10 and c["fitted_on"] == {"dataset": "src (train)", "n_scenes": 40}
     assert [c["visible"][t] for t in TARGETS] == pytest.approx([1.0, 1.0, 1.0], abs=1e-2)
+
+
+def test_a_datasets_ceilings_from_the_config_find_its_manifests_and_its_reference(tmp_path):
+    """`dataset_ceilings_from_config` (the benchmarks' entry): the shards under the results root, a
+    re-render fitted on its source's other splits as the DAG's ceiling job does."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from psdfactory import config as psd_config
+    from psdfactory.learn.ceiling import dataset_ceilings_from_config
+    from tests.conftest import tiny_config
+
+    def write(dataset, scenes, particles, splits):
+        m = tmp_path / dataset / "manifest"
+        for table in ("scenes", "particles"):
+            (m / table).mkdir(parents=True)
+        pq.write_table(pa.Table.from_pylist([dict(s, split=sp) for s, sp in zip(scenes, splits, strict=True)]),
+                       m / "scenes" / "shard-00000.parquet")
+        parts = [{"scene_id": k, "size_mm": float(z), "visible_px": int(v)}
+                 for k, (sz, vis) in particles.items() for z, v in zip(sz, vis, strict=True)]
+        pq.write_table(pa.Table.from_pylist(parts), m / "particles" / "shard-00000.parquet")
+
+    cfg = tiny_config(n_scenes=50, table_size=300, size={"mean": [5, 8], "sigma": [2, 3], "bounds": [0.5, 100]})
+    cfg["datasets"]["again"] = {"rerender_of": {"dataset": "tiny", "split": "test"}, "render": {}}
+    psd_config.validate(cfg)
+    src, particles = _scenes(50, seed=8)
+    write("tiny", src, particles, ["train"] * 40 + ["test"] * 10)
+    with pytest.raises(PsdError, match="no scenes manifest of again"):
+        dataset_ceilings_from_config(cfg, tmp_path, "again")
+    write("again", src[40:], {s["scene_id"]: particles[s["scene_id"]] for s in src[40:]}, ["test"] * 10)
+    c = dataset_ceilings_from_config(cfg, tmp_path, "again")
+    assert c["n_scenes"] == 10 and c["fitted_on"] == {"dataset": "tiny (train, val)", "n_scenes": 40}
+    assert [c["visible"][t] for t in TARGETS] == pytest.approx([1.0, 1.0, 1.0], abs=1e-2)
+    own = dataset_ceilings_from_config(cfg, tmp_path, "tiny")  # not a re-render: cross-validated on its own
+    assert own["n_scenes"] == 50 and "fitted_on" not in own

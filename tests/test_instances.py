@@ -16,8 +16,10 @@ from psdfactory import config as psd_config
 from psdfactory.learn.instances import (
     DEFAULT_POSTPROCESS,
     MAPS,
+    READOUTS,
     InstanceEstimator,
     InstanceNet,
+    InstanceSettings,
     decode_size,
     encode_size,
     fully_visible,
@@ -191,6 +193,14 @@ def test_train_params_slice_has_the_instance_settings_only_for_instances():
 # one tiny training run, then everything downstream of it
 
 
+def tiny_instance_params(cfg: dict) -> dict:
+    """The instance estimator's training slice of `cfg` (the schema's defaults), one tiny epoch."""
+    params = psd_config.train_params(cfg, "instances")
+    params.update(pretrained="none", epochs=1, batch_size=2, input_size=32, precision="fp32", seed=1)
+    params["instances"].update(crops_per_image=2)
+    return params
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """Two tiny 48-px scenes (train, val), their manifests, and one epoch of training."""
@@ -205,9 +215,7 @@ def tiny(tmp_path_factory):
     write_shard(dirs, root, {"train": 1.0}, out, m / "particles" / "shard-00000.parquet")
     t = pq.read_table(out)
     pq.write_table(t.set_column(t.schema.get_field_index("split"), "split", pa.array(["train", "val"])), out)
-    params = psd_config.train_params(cfg, "instances")  # the schema's defaults, then these
-    params.update(pretrained="none", epochs=1, batch_size=2, input_size=32, precision="fp32", seed=1)
-    params["instances"].update(crops_per_image=2)
+    params = tiny_instance_params(cfg)
     model_dir = root / "models" / "instances"
     summary = train_from_params(params, root, model_dir)
     return root, model_dir / "model.pt", summary
@@ -224,12 +232,34 @@ def test_tiny_training_writes_a_plain_model_file(tiny):
     assert len(meta["readout"]["weights"]) == len(meta["readout"]["features"]) + 1
     assert set(meta["postprocess"]) >= {"threshold", "h"} and meta["maps"] == list(MAPS)
     assert meta["sieve_method"] == "min_feret"  # the schema default: the size map is measured, not (yet) better
+    # the read-out reads what train.instances.readout names, fitted on the train and the val scene
+    assert meta["readout"]["features"] == list(READOUTS[meta["readout_features"]])
+    assert meta["readout"]["n_scenes"] == 2
     model, meta2 = load_model(model_path)
     assert isinstance(model, InstanceNet)
     assert meta2["readout"] == meta["readout"] and meta2["postprocess"] == meta["postprocess"]
     with open(model_path.parent / "history.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 1 and float(rows[0]["train_loss"]) > 0
+
+
+def test_readout_of_footprints_and_size_map(tiny, tmp_path):
+    """train.instances.readout picks the read-out's statistics: the size map's too, or not."""
+    from psdfactory.learn.train import train_from_params
+
+    root, model_path, _ = tiny
+    meta = torch.load(model_path, map_location="cpu", weights_only=True)["meta"]
+    cfg = tiny_config(n_scenes=2, count=[15, 25])
+    cfg["render"]["resolution"] = 48
+    params = tiny_instance_params(cfg)
+    other = next(k for k in READOUTS if k != meta["readout_features"])
+    params["instances"] = {**params["instances"], "readout": other}
+    summary = train_from_params(params, root, tmp_path / "other")
+    feats = summary["readout"]["features"]
+    assert summary["readout_features"] == other and feats == list(READOUTS[other])
+    assert any(f.startswith("map_") for f in feats) == (other == "footprints+size_map")
+    with pytest.raises(PsdError, match="train.instances.readout"):
+        InstanceSettings.from_dict({**params["instances"], "readout": "pixels"})
 
 
 def test_predict_writes_overlays_masks_and_particles(tiny, tmp_path, capsys):

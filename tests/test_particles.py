@@ -246,9 +246,22 @@ def test_psd_errors():
 def test_instance_stats(shapes_mask):
     m = measure_instances(shapes_mask, MM)
     st = instance_stats(m)
-    assert st.shape == (len(STAT_NAMES),) and np.isfinite(st).all()
+    assert st.shape == (len(STAT_NAMES),)
     got = dict(zip(STAT_NAMES, st))
+    # a mask alone has no size map: its statistics are NaN, every other one is finite
+    assert all(np.isnan(got[k]) == k.startswith("map_") for k in STAT_NAMES)
     np.testing.assert_allclose([got["d10_mm"], got["d50_mm"], got["d90_mm"]], weighted_percentiles(m.min_feret_mm, None))
+
+    # with a size map (px of the particle each pixel belongs to): the same statistics of its
+    # median per instance, beside the footprints' (which it does not change)
+    size_px = np.where(shapes_mask > 0, 3.0 * shapes_mask, 0.0)
+    mm = measure_instances(shapes_mask, MM, size_map_px=size_px)
+    got_map = dict(zip(STAT_NAMES, instance_stats(mm)))
+    assert np.isfinite(list(got_map.values())).all()
+    np.testing.assert_allclose([got_map["map_d10_mm"], got_map["map_d50_mm"], got_map["map_d90_mm"]],
+                               weighted_percentiles(3.0 * m.ids * MM, None))
+    assert got_map["map_mean_mm"] == pytest.approx(3.0 * m.ids.mean() * MM)
+    assert all(got_map[k] == got[k] for k in STAT_NAMES if not k.startswith("map_"))
     cm2 = shapes_mask.size * MM**2 / 100  # densities per cm² of image: a larger view of the same bed reads the same
     assert got["log_density"] == pytest.approx(np.log1p(4 / cm2))
     assert got["covered_fraction"] == pytest.approx((shapes_mask > 0).mean())

@@ -191,3 +191,24 @@ def ceilings_from_manifests(scene_shards: list, particle_shards: list, bounds: t
         if ref is not None:
             ref.footprints = scene_footprints(results_root, ref.scenes)
     return dataset_ceilings(here.scenes, here.particles, bounds, visible_min_px, folds, here.footprints, ref)
+
+
+def dataset_ceilings_from_config(config: dict, results_root: Path, dataset: str, footprints: bool = False) -> dict:
+    """`ceilings_from_manifests` of a dataset of a validated config, from its manifests under
+    `results_root` (a re-render's fitted on its source's other splits, as the DAG's ceiling job
+    does); with `footprints` the footprint ceiling too."""
+    from ..config import ceiling_params
+
+    def shards(d: str, table: str) -> list[Path]:
+        found = sorted((Path(results_root) / d / "manifest" / table).glob("*.parquet"))
+        if not found:
+            raise PsdError(f"no {table} manifest of {d} under {results_root}: make the dataset first")
+        return found
+
+    p = ceiling_params(config, dataset)
+    ref = p["reference"]
+    if ref:
+        ref = {**ref, **{t: shards(ref["dataset"], t) for t in ("scenes", "particles")}}
+    return ceilings_from_manifests(shards(dataset, "scenes"), shards(dataset, "particles"), tuple(p["bounds"]),
+                                   p["visible_min_px"], results_root=results_root if footprints else None,
+                                   reference=ref)

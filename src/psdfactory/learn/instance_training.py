@@ -26,6 +26,7 @@ from .instances import (
     FULL_RES,
     MAPS,
     POSTPROCESS_GRID,
+    READOUTS,
     TRUNK,
     InstanceEstimator,
     InstanceSettings,
@@ -40,7 +41,7 @@ from .instances import (
     torch_maps_fn,
 )
 from .particles import match_instances
-from .readout import fit_readout
+from .readout import apply_readout, fit_readout
 
 logger = logging.getLogger(__name__)
 
@@ -183,21 +184,25 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     post, val_f1 = pick_postprocess(val_maps, val_masks)
     est.post = post
     train_maps = all_maps(est, x_train)
-    x_stats = np.stack([est.analyse_maps(mp, s).stats
-                        for mp, s in zip(train_maps, _scaled_rows(train_rows), strict=True)])
-    readout = fit_readout(x_stats, label_targets(train_rows).numpy())
-    est.readout = readout
+    train_res = [est.analyse_maps(mp, s) for mp, s in zip(train_maps, _scaled_rows(train_rows), strict=True)]
     val_res = [est.analyse_maps(mp, s) for mp, s in zip(val_maps, _scaled_rows(val_rows), strict=True)]
-    y_val = label_targets(val_rows).numpy()
+    y_train, y_val = label_targets(train_rows).numpy(), label_targets(val_rows).numpy()
+    # the read-out is fitted on the training and the validation scenes: the network has learnt
+    # the training images, so its instances there are better than on new images; the validation
+    # images show the read-out what the network makes of images it has not seen
+    readout = fit_readout(np.stack([r.stats for r in train_res + val_res]), np.concatenate([y_train, y_val]),
+                          features=READOUTS[settings.readout])
     from .metrics import regression_metrics
 
-    val_cal = regression_metrics(y_val, np.stack([r.calibrated for r in val_res]))
+    val_cal = regression_metrics(y_val, apply_readout(readout, np.stack([r.stats for r in val_res])))
     val_raw = regression_metrics(y_val, np.nan_to_num(np.stack([r.raw for r in val_res])))
     history[-1]["val_mae_mm"] = val_cal["overall"]["mae"]
     write_history(history, out_dir / "history.csv")
     r2s = {k: " / ".join(f"{m[n]['r2']:.3f}" for n in NAMES) for k, m in (("cal", val_cal), ("raw", val_raw))}
-    logger.info(f"read-out fitted on {len(train_rows)} training scenes (ridge {readout['alpha']:g}); validation R² "
-        f"calibrated {r2s['cal']}, raw {r2s['raw']} ({time.perf_counter() - t0:.0f} s)")
+    cv = " / ".join(f"{v:.3f}" for v in readout["cv_r2"]) if readout["cv_r2"] else "n/a (too few scenes)"
+    logger.info(f"read-out ({settings.readout}) fitted on {len(train_rows)} training + {len(val_rows)} validation "
+        f"scenes (ridge {readout['alpha']:g}): cross-validated R² {cv}; validation R² calibrated (in the fit) "
+        f"{r2s['cal']}, raw {r2s['raw']} ({time.perf_counter() - t0:.0f} s)")
 
     mm = float(np.median([r["mm_per_px"] for r in train_rows]))
     res = int(np.median([r["resolution"] for r in train_rows]))
@@ -216,6 +221,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         "maps": list(MAPS),
         "postprocess": post,
         "sieve_method": settings.sieve_method,
+        "readout_features": settings.readout,
         "readout": readout,
         "boundary_pos_weight": pw,
         "val": {"f1": val_f1, "r2_calibrated": [val_cal[n]["r2"] for n in NAMES],

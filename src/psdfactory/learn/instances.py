@@ -50,6 +50,8 @@ from ..io import read_png
 from ..psd import TARGETS
 from .particles import (
     DEFAULT_SIEVE_METHOD,
+    MAP_READOUT_FEATURES,
+    READOUT_FEATURES,
     SIEVE_METHODS,
     STAT_NAMES,
     InstanceMeasurements,
@@ -76,6 +78,9 @@ SIZE_RANGE_PX = (0.5, 1024.0)  # sizes the size map can express (log-linear in b
 DEFAULT_POSTPROCESS = {"threshold": 0.5, "h": 0.2, "min_distance": 0.0, "min_area_px": 4, "use_boundary": True}
 # the post-processing grid searched on the validation masks after training
 POSTPROCESS_GRID = {"h": (0.1, 0.2, 0.35, 0.5), "use_boundary": (False, True), "min_distance": (0.0, 3.0)}
+# what the calibrated read-out may read (train.instances.readout): the instances' footprint
+# statistics, or those and the same statistics of the size map
+READOUTS = {"footprints": READOUT_FEATURES, "footprints+size_map": MAP_READOUT_FEATURES}
 
 
 @dataclass(frozen=True)
@@ -86,7 +91,8 @@ class InstanceSettings:
     crops_per_image: int  # random crops of each training image per epoch
     photometric: float  # strength of the camera/light augmentation of the image (0 = off)
     lr: float  # Adam learning rate
-    sieve_method: str  # min_feret | ellipse_minor
+    sieve_method: str  # min_feret | ellipse_minor | size_map
+    readout: str  # footprints | footprints+size_map: what the calibrated read-out reads (READOUTS)
 
     @classmethod
     def from_dict(cls, d: dict) -> InstanceSettings:
@@ -95,6 +101,8 @@ class InstanceSettings:
         s = cls(**config_fields(cls, d, "train.instances"))
         if s.sieve_method not in SIEVE_METHODS:
             raise PsdError(f"train.instances.sieve_method must be one of {', '.join(SIEVE_METHODS)}")
+        if s.readout not in READOUTS:
+            raise PsdError(f"train.instances.readout must be one of {', '.join(READOUTS)}")
         return s
 
 

@@ -517,24 +517,34 @@ def psd_from_instances(
     }
 
 
+SIZE_STATS = ("d10_mm", "d50_mm", "d90_mm", "d10_v_mm", "d50_v_mm", "d90_v_mm", "mean_mm", "std_mm")
+# the same size statistics of the size map's estimate per instance (NaN for a mask alone)
+MAP_SIZE_STATS = tuple(f"map_{k}" for k in SIZE_STATS)
 STAT_NAMES = (
-    "d10_mm",
-    "d50_mm",
-    "d90_mm",
-    "d10_v_mm",
-    "d50_v_mm",
-    "d90_v_mm",
-    "mean_mm",
-    "std_mm",
+    *SIZE_STATS,
     "log_density",
     "log_density_all",
     "covered_fraction",
     "edge_fraction",
     "mm_per_px",
+    *MAP_SIZE_STATS,
 )
 # The statistics a read-out may use: those that do not change with the field of view (a larger
 # image of the same bed has more instances and fewer of them on its edge) or with the camera.
-READOUT_FEATURES = STAT_NAMES[:-2]
+# READOUT_FEATURES need a mask only (footprints); with the network's size map, a read-out may
+# add the size map's statistics (MAP_READOUT_FEATURES).
+READOUT_FEATURES = (*SIZE_STATS, "log_density", "log_density_all", "covered_fraction")
+MAP_READOUT_FEATURES = (*READOUT_FEATURES, *MAP_SIZE_STATS)
+
+
+def _size_stats(s: np.ndarray, v: np.ndarray, fill_value: float) -> list[float]:
+    """Number- and volume-weighted d10/d50/d90, mean and sd of sizes `s` (volumes `v`), in the
+    order of SIZE_STATS; `fill_value` without any size."""
+    if not s.size:
+        return [float(fill_value)] * len(SIZE_STATS)
+    d_n = weighted_percentiles(s, None)
+    d_v = weighted_percentiles(s, v) if (v > 0).any() else np.full(3, fill_value)
+    return [*map(float, d_n), *map(float, d_v), float(s.mean()), float(s.std())]
 
 
 def instance_stats(
@@ -545,10 +555,12 @@ def instance_stats(
 ) -> np.ndarray:
     """Fixed-length feature vector of one image's instances, in the order of STAT_NAMES.
 
-    Size statistics (number- and volume-weighted d10/d50/d90, mean and sd of the sieve-size
-    estimate) use the instances not touching the image edge (all with `include_edge`); when
-    every instance touches the edge they fall back to all instances, and with no instance at
-    all they are `fill_value` (NaN by default: impute before fitting). Densities are log(1 + n
+    Size statistics (SIZE_STATS: number- and volume-weighted d10/d50/d90, mean and sd of the
+    sieve-size estimate `method`) use the instances not touching the image edge (all with
+    `include_edge`); when every instance touches the edge they fall back to all instances, and
+    with no instance at all they are `fill_value` (NaN by default: impute before fitting). The
+    same statistics of the size map's estimate per instance (MAP_SIZE_STATS; volumes as for
+    the others) where the measurements carry one, else `fill_value`. Densities are log(1 + n
     per cm² of image) of the included and of all instances; `covered_fraction` is the share of image pixels in
     an instance, `edge_fraction` the share of instances touching the edge (0 with none), and
     `mm_per_px` the scale (it sets the size of the smallest visible particle).
@@ -558,15 +570,11 @@ def instance_stats(
     keep = np.ones(n_all, dtype=bool) if include_edge else ~measurements.touches_edge
     if not keep.any():
         keep = np.ones(n_all, dtype=bool)
-    s, v = sizes[keep], measurements.volume_mm3[keep]
+    v = measurements.volume_mm3[keep]
     out = dict.fromkeys(STAT_NAMES, float(fill_value))
-    if s.size:
-        d_n = weighted_percentiles(s, None)
-        d_v = weighted_percentiles(s, v) if (v > 0).any() else np.full(3, fill_value)
-        out.update(zip(("d10_mm", "d50_mm", "d90_mm"), map(float, d_n)))
-        out.update(zip(("d10_v_mm", "d50_v_mm", "d90_v_mm"), map(float, d_v)))
-        out["mean_mm"] = float(s.mean())
-        out["std_mm"] = float(s.std())
+    out.update(zip(SIZE_STATS, _size_stats(sizes[keep], v, fill_value), strict=True))
+    if measurements.size_map_mm is not None:
+        out.update(zip(MAP_SIZE_STATS, _size_stats(measurements.size_map_mm[keep], v, fill_value), strict=True))
     h, w = measurements.image_shape
     n_inc = int((~measurements.touches_edge).sum()) if not include_edge else n_all
     cm2 = max(h * w, 1) * measurements.mm_per_px**2 / 100.0
