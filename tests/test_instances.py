@@ -262,6 +262,33 @@ def test_readout_of_footprints_and_size_map(tiny, tmp_path):
         InstanceSettings.from_dict({**params["instances"], "readout": "pixels"})
 
 
+def test_precision_auto_times_bf16_against_fp32_and_trains_in_the_faster(tiny, tmp_path, monkeypatch):
+    """On a CPU with native bf16, `precision: auto` times one batch of the instance network in
+    each (as for the CNNs) and trains in the faster; calibration maps stay fp32."""
+    from psdfactory.learn import runtime
+    from psdfactory.learn.train import train_from_params
+
+    root, _, _ = tiny
+    calls = []
+
+    def timed(model, size, batch, loss_of):
+        out = model(torch.zeros(batch, 3, size, size))
+        loss = loss_of(out)  # the instance loss of the network's maps: a finite scalar
+        calls.append((size, batch, float(loss)))
+        return "bf16"
+
+    monkeypatch.setattr(runtime, "cpu_has_fast_bf16", lambda: True)
+    monkeypatch.setattr(runtime, "faster_cpu_precision", timed)
+    cfg = tiny_config(n_scenes=2, count=[15, 25])
+    cfg["render"]["resolution"] = 48
+    params = {**tiny_instance_params(cfg), "precision": "auto"}
+    summary = train_from_params(params, root, tmp_path / "auto")
+    assert len(calls) == 1 and calls[0][:2] == (32, 2) and np.isfinite(calls[0][2])
+    assert summary["precision"] == "bf16"  # trained under bf16 autocast, to a finite loss
+    with open(tmp_path / "auto" / "history.csv") as f:
+        assert np.isfinite(float(next(csv.DictReader(f))["train_loss"]))
+
+
 def test_predict_writes_overlays_masks_and_particles(tiny, tmp_path, capsys):
     from PIL import Image
 

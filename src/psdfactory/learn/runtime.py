@@ -107,15 +107,16 @@ class LrSchedule:
         self.sched.load_state_dict(state)
 
 
-def faster_cpu_precision(model: nn.Module, size: int, batch: int, stats: TargetStats, aux_weight: float) -> str:
+def faster_cpu_precision(model: nn.Module, size: int, batch: int, loss_of) -> str:
     """bf16 autocast or fp32 for CPU training, whichever trains this model faster here.
 
-    Native bf16 helps the big convolutions (ResNet-50: ~2×) but not always the depthwise ones
-    (EfficientNet-B0 can be slower in bf16), so 'auto' times one forward+backward pass of each
-    (after a warm-up) without stepping the optimiser, and keeps the faster.
+    Native bf16 helps the big convolutions (ResNet-50: ~2×; the instance network ~1.5× on an AMD
+    EPYC with AVX512-BF16) but not always the depthwise ones (EfficientNet-B0 can be slower in
+    bf16), so 'auto' times one forward+backward pass of each on a batch of `batch` random
+    `size`-px images (after a warm-up; `loss_of(output)` gives the loss to differentiate) without
+    stepping the optimiser, and keeps the faster.
     """
     x = torch.randn(batch, 3, size, size).contiguous(memory_format=torch.channels_last)
-    y = torch.zeros(batch, 3)
     dev = torch.device("cpu")
     times = {}
     saved = {k: v.clone() for k, v in model.state_dict().items()}  # BatchNorm statistics move in train mode
@@ -125,7 +126,7 @@ def faster_cpu_precision(model: nn.Module, size: int, batch: int, stats: TargetS
             t0 = time.perf_counter()
             with autocast(dev, prec):
                 out = model(x)
-            loss_fn(out, y, stats, aux_weight).backward()
+            loss_of(out).backward()
             times[prec] = time.perf_counter() - t0
     model.zero_grad(set_to_none=True)
     model.load_state_dict(saved)

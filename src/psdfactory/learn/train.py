@@ -192,8 +192,9 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
         logger.info(f"inception_v3 at {size} px: auxiliary head dropped (it needs ≥ 299 px)")
     model = model.to(device).to(memory_format=torch.channels_last)
     if params.precision == "auto" and precision == "bf16" and device.type == "cpu":
-        precision = faster_cpu_precision(model, size, min(params.batch_size, len(train_ds)), stats,
-                                         params.aux_loss_weight)
+        batch = min(params.batch_size, len(train_ds))
+        precision = faster_cpu_precision(model, size, batch, lambda out: loss_fn(out, torch.zeros(batch, 3), stats,
+                                                                                  params.aux_loss_weight))
     cells, fed = None, train_ds
     if params.size_cells > 0:  # the dense size-histogram task: a head on the last feature map, training only
         from .instances import read_particles
