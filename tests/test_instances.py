@@ -187,6 +187,10 @@ def test_train_params_slice_has_the_instance_settings_only_for_instances():
     assert "instances" not in psd_config.train_params(cfg, "resnet50")
     p = psd_config.train_params(cfg, "instances")
     assert p["instances"]["crops_per_image"] >= 1 and p["input_size"] == 128
+    assert p["epochs"] == cfg["train"]["epochs"] and "epochs" not in p["instances"]  # null: train.epochs
+    cfg["train"]["instances"]["epochs"] = cfg["train"]["epochs"] + 7  # its own length, the CNNs' unchanged
+    assert psd_config.train_params(cfg, "instances")["epochs"] == cfg["train"]["epochs"] + 7
+    assert psd_config.train_params(cfg, "resnet50")["epochs"] == cfg["train"]["epochs"]
 
 
 # ---------------------------------------------------------------------------------------------

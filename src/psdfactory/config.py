@@ -432,5 +432,8 @@ def train_params(config: dict, arch: str) -> dict:
     out.update(arch=arch, seed=config["seed"], input_size=int(size))
     if arch == "instances":  # only its own slice: editing train.instances retrains no CNN
         out["instances"] = copy.deepcopy(t["instances"])
+        epochs = out["instances"].pop("epochs", None)
+        if epochs is not None:  # its own length (train.instances.epochs) overrides train.epochs
+            out["epochs"] = int(epochs)
     return out
 
