@@ -38,6 +38,7 @@ TINY = {
         "lr_schedule": "onecycle", "size_cells": 1.0,  # the default config's recipe
         "architectures": ["resnet50", "inception_v3", "efficientnet_b0", "instances"],
         "input_size": {"resnet50": 32, "inception_v3": 75, "efficientnet_b0": 32, "instances": 32},
+        "instances": {"readout": "footprints+size_map"},  # the default config's read-out
     },
     "benchmark": {"batch_size": 2, "seconds": 0.05, "repeats": 1},
     "show": {"compare_backends": COMPARE},
