@@ -265,6 +265,26 @@ def test_readout_of_footprints_and_size_map(tiny, tmp_path):
     with pytest.raises(PsdError, match="train.instances.readout"):
         InstanceSettings.from_dict({**params["instances"], "readout": "pixels"})
 
+    # the size map's read-out in deployment: predict reads it the same through PyTorch and ONNX;
+    # a network without a size map cannot carry it
+    from psdfactory.learn.capability import detect
+    from psdfactory.learn.instances import readout_problems
+
+    with_map = summary if other == "footprints+size_map" else meta
+    assert readout_problems(with_map) == []
+    assert any("size map" in p for p in readout_problems({**with_map, "maps": ["foreground", "boundary", "distance"]}))
+    if detect().onnxruntime:
+        from psdfactory.deploy.export import export
+        from psdfactory.deploy.predict import predict_files
+
+        path = (tmp_path / "other" if other == "footprints+size_map" else model_path.parent) / "model.pt"
+        export(path, tmp_path / "onnx")
+        img = str(root / "tiny" / "scenes" / "tiny-000001" / "image.png")
+        ref = predict_files(path, [img])[0]
+        got = predict_files(tmp_path / "onnx" / "model.onnx", [img])[0]
+        keys = ("d10_mm", "d50_mm", "d90_mm")
+        assert not got["error"] and [got[k] for k in keys] == pytest.approx([ref[k] for k in keys], abs=1e-3)
+
 
 def test_precision_auto_times_bf16_against_fp32_and_trains_in_the_faster(tiny, tmp_path, monkeypatch):
     """On a CPU with native bf16, `precision: auto` times one batch of the instance network in
@@ -283,12 +303,20 @@ def test_precision_auto_times_bf16_against_fp32_and_trains_in_the_faster(tiny, t
 
     monkeypatch.setattr(runtime, "cpu_has_fast_bf16", lambda: True)
     monkeypatch.setattr(runtime, "faster_cpu_precision", timed)
+    from psdfactory.learn import instance_training
+
+    maps_precision = []
+    real_maps_fn = instance_training.torch_maps_fn
+    monkeypatch.setattr(instance_training, "torch_maps_fn",
+                        lambda model, device, precision: maps_precision.append(precision) or real_maps_fn(model, device,
+                                                                                                         precision))
     cfg = tiny_config(n_scenes=2, count=[15, 25])
     cfg["render"]["resolution"] = 48
     params = {**tiny_instance_params(cfg), "precision": "auto"}
     summary = train_from_params(params, root, tmp_path / "auto")
     assert len(calls) == 1 and calls[0][:2] == (32, 2) and np.isfinite(calls[0][2])
     assert summary["precision"] == "bf16"  # trained under bf16 autocast, to a finite loss
+    assert maps_precision == ["fp32"]  # the calibration's maps, as evaluate and predict make them
     with open(tmp_path / "auto" / "history.csv") as f:
         assert np.isfinite(float(next(csv.DictReader(f))["train_loss"]))
 

@@ -108,7 +108,8 @@ def export_int8(model, meta: dict, fp32_onnx: Path, out: Path, results_root: Pat
 
 def export_instances(model, meta: dict, out_dir: Path) -> dict:
     """The instance estimator's network as ONNX — images (N×3×H×W, any H and W) in, its maps
-    (N×3×H×W: foreground, boundary, distance, each in [0, 1]) out — checked against PyTorch at
+    (N×C×H×W, C = len(meta["maps"]): foreground, boundary, distance and the size map, each in
+    [0, 1]) out — checked against PyTorch at
     two sizes, with meta.json (scale, post-processing settings, read-out). The watershed,
     measurement and read-out stay in Python: `psdfactory predict --model model.onnx` runs them."""
     import onnxruntime as ort
@@ -141,7 +142,8 @@ def export_instances(model, meta: dict, out_dir: Path) -> dict:
                 "post-processing stays in Python)")
     report = {"arch": meta["arch"], "input_size": size, "mm_per_px": meta["mm_per_px"],
               "input": "float32 Nx3xHxW (any H, W), RGB/255 normalised with ImageNet mean/std, at mm_per_px",
-              "output": "float32 Nx3xHxW maps in [0, 1]: foreground, boundary, normalised distance; post-process with "
+              "output": "float32 NxCxHxW maps in [0, 1], C = len(maps): foreground, boundary, normalised distance, "
+                        "size map (log size of each pixel's particle); post-process with "
                         "psdfactory.learn.instances.InstanceEstimator (watershed, measurement, read-out in meta.json)",
               "onnx": {"path": str(onnx_path), "max_abs_diff": diff},
               "torchscript": None, "not_exported": "TorchScript and int8: not for the instance estimator"}

@@ -77,7 +77,7 @@ def load_predictor(model_path: Path, device: str = "cpu"):
     """→ (function: normalised float N×3×S×S tensor → N×3 mm array, meta). A `model.pt` runs in
     PyTorch; an exported `.onnx` (fp32 or int8, with the export's meta.json beside it) runs in
     ONNX Runtime on the CPU. For an instance model (arch 'instances') the function returns its
-    N×3×H×W maps (foreground, boundary, distance) instead: see `InstanceOutputs`."""
+    N×C×H×W maps (foreground, boundary, distance, size) instead: see `InstanceOutputs`."""
     model_path = Path(model_path)
     if model_path.suffix == ".onnx":
         from ..learn.runtime import meta_problems

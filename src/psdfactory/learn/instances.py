@@ -22,8 +22,9 @@ it, then read the PSD off the measured particles.
   loss on the full validation images. Then, with the best weights: the post-processing
   settings (thresholds, h-maxima depth, seed merging) are picked by F1 at IoU 0.5 against the
   validation masks, and a ridge read-out from `particles.instance_stats` to the labels is fitted
-  on the training split's *predicted* instances (the camera cannot see hidden fines; the
-  read-out learns what they add). All of it is stored as plain lists in the model file's meta.
+  on the training and validation scenes' *predicted* instances (the camera cannot see hidden
+  fines; the read-out learns what they add), reading the statistics ``train.instances.readout``
+  names (READOUTS: the footprints', and with ``footprints+size_map`` the size map's too). All of it is stored as plain lists in the model file's meta.
 - **Inference** (`InstanceEstimator`): full image → maps → `split_instances` → `measure_instances`
   at the image's mm per pixel (sieve size per ``train.instances.sieve_method``: by default the
   footprint's min Feret diameter; ``size_map``, the size map's median over the instance, reads
@@ -534,6 +535,8 @@ def readout_problems(meta: dict) -> list[str]:
         if not (isinstance(feats, list) and feats and all(f in STAT_NAMES for f in feats)):
             problems.append(f"readout.features must name instance statistics ({', '.join(STAT_NAMES)}); "
                             "a model from an older psdfactory: train it again")
+        elif any(f.startswith("map_") for f in feats) and (not isinstance(maps, list) or "size" not in maps):
+            problems.append("readout.features read the size map, which this network does not predict")
         else:
             nf = len(feats)
             ok = (all(nums(ro.get(k), nf) for k in ("impute", "mean", "scale"))

@@ -110,8 +110,8 @@ class LrSchedule:
 def faster_cpu_precision(model: nn.Module, size: int, batch: int, loss_of) -> str:
     """bf16 autocast or fp32 for CPU training, whichever trains this model faster here.
 
-    Native bf16 helps the big convolutions (ResNet-50: ~2×; the instance network ~1.5× on an AMD
-    EPYC with AVX512-BF16) but not always the depthwise ones (EfficientNet-B0 can be slower in
+    Native bf16 helps the big convolutions (ResNet-50: ~2×; the instance network 1.8-2.1× on an
+    AMD EPYC with AVX512-BF16) but not always the depthwise ones (EfficientNet-B0 can be slower in
     bf16), so 'auto' times one forward+backward pass of each on a batch of `batch` random
     `size`-px images (after a warm-up; `loss_of(output)` gives the loss to differentiate) without
     stepping the optimiser, and keeps the faster.
