@@ -24,7 +24,8 @@ it, then read the PSD off the measured particles.
   validation masks, and a ridge read-out from `particles.instance_stats` to the labels is fitted
   on the training and validation scenes' *predicted* instances (the camera cannot see hidden
   fines; the read-out learns what they add), reading the statistics ``train.instances.readout``
-  names (READOUTS: the footprints', and with ``footprints+size_map`` the size map's too). All of it is stored as plain lists in the model file's meta.
+  names (READOUTS: the footprints', and with ``footprints+size_map`` the size map's too). All of
+  it is stored as plain lists in the model file's meta.
 - **Inference** (`InstanceEstimator`): full image → maps → `split_instances` → `measure_instances`
   at the image's mm per pixel (sieve size per ``train.instances.sieve_method``: by default the
   footprint's min Feret diameter; ``size_map``, the size map's median over the instance, reads
