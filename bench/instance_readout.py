@@ -23,13 +23,16 @@ import numpy as np
 
 def stats_of(est, rows: list[dict], root: Path, batch: int = 8) -> np.ndarray:
     """`instance_stats` of the estimator's instances in each row's image (images of one size)."""
-    from psdfactory.learn.instances import all_maps, load_scenes
+    import torch
+
+    from psdfactory.io import read_png
+    from psdfactory.learn.data import to_input
 
     out = []
     for i in range(0, len(rows), batch):
         chunk = rows[i : i + batch]
-        images, _ = load_scenes(root, chunk)
-        maps = all_maps(est, images)
+        images = torch.stack([to_input(read_png(root / r["image_path"]), None) for r in chunk])
+        maps = est.maps(images)
         out += [est.analyse_maps(m, float(r["mm_per_px"])).stats for m, r in zip(maps, chunk, strict=True)]
     return np.stack(out)
 

@@ -98,12 +98,11 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     from .data import normalise, training_rows
     from .data import targets as label_targets
     from .models import count_parameters
-    from .runtime import LrSchedule, faster_cpu_precision, optimise_step, pick_device, pick_precision, save_model
+    from .runtime import LrSchedule, optimise_step, pick_device, save_model, training_precision
 
     torch.manual_seed(params.seed)
     np.random.seed(params.seed % 2**32)
     device = pick_device(params.device)
-    precision = pick_precision(params.precision, device)
     train_rows, val_rows, rows = training_rows(results_root, params.datasets)
     t_load = time.perf_counter()
     # the size map's targets
@@ -114,10 +113,10 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     pw = boundary_weight(t_train)
     model, weights_used = build_instance_net(params.pretrained)
     model = model.to(device).to(memory_format=torch.channels_last)
-    if params.precision == "auto" and precision == "bf16" and device.type == "cpu":
-        batch = min(params.batch_size, len(x_train) * settings.crops_per_image)
-        dummy = torch.zeros(batch, len(MAPS), crop, crop)
-        precision = faster_cpu_precision(model, crop, batch, lambda out: instance_loss(out, dummy, pw)[0])
+    batch = min(params.batch_size, len(x_train) * settings.crops_per_image)
+    dummy = torch.zeros(batch, len(MAPS), crop, crop)
+    precision = training_precision(params.precision, device, model, crop, batch,
+                                   lambda out: instance_loss(out, dummy, pw)[0])
     n_params = count_parameters(model)
     logger.info(f"training {ARCH} ({TRUNK} trunk + U-Net decoder, {n_params / 1e6:.2f} M parameters, weights: "
         f"{weights_used}) on {len(train_rows)} train / {len(val_rows)} val scenes of {', '.join(params.datasets)}: "

@@ -107,6 +107,17 @@ class LrSchedule:
         self.sched.load_state_dict(state)
 
 
+def training_precision(requested: str, device: torch.device, model: nn.Module, size: int, batch: int,
+                       loss_of) -> str:
+    """The precision to train `model` in: `pick_precision`'s, and for `auto` on a CPU with native
+    bf16 whichever of bf16 and fp32 trains it faster here (`faster_cpu_precision`, on a batch of
+    `batch` `size`-px images, `loss_of(output)` the loss)."""
+    precision = pick_precision(requested, device)
+    if requested == "auto" and precision == "bf16" and device.type == "cpu":
+        precision = faster_cpu_precision(model, size, batch, loss_of)
+    return precision
+
+
 def faster_cpu_precision(model: nn.Module, size: int, batch: int, loss_of) -> str:
     """bf16 autocast or fp32 for CPU training, whichever trains this model faster here.
 

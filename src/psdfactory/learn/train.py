@@ -29,14 +29,13 @@ from .data import SceneImages, normalise, training_rows
 from .models import TargetStats, build_model, count_parameters, inception_aux_fits, input_size
 from .runtime import (
     LrSchedule,
-    faster_cpu_precision,
     load_checkpoint,
     loss_fn,
     optimise_step,
     pick_device,
-    pick_precision,
     predict_batches,
     save_model,
+    training_precision,
     write_torch,
 )
 
@@ -180,7 +179,6 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
     torch.manual_seed(params.seed)
     np.random.seed(params.seed % 2**32)
     device = pick_device(params.device)
-    precision = pick_precision(params.precision, device)
     size = input_size(params.arch, {params.arch: params.input_size})
 
     train_rows, val_rows, rows = training_rows(results_root, params.datasets)
@@ -191,10 +189,9 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
     if params.arch == "inception_v3" and not inception_aux_fits(size):
         logger.info(f"inception_v3 at {size} px: auxiliary head dropped (it needs ≥ 299 px)")
     model = model.to(device).to(memory_format=torch.channels_last)
-    if params.precision == "auto" and precision == "bf16" and device.type == "cpu":
-        batch = min(params.batch_size, len(train_ds))
-        precision = faster_cpu_precision(model, size, batch, lambda out: loss_fn(out, torch.zeros(batch, 3), stats,
-                                                                                  params.aux_loss_weight))
+    batch = min(params.batch_size, len(train_ds))
+    precision = training_precision(params.precision, device, model, size, batch,
+                                   lambda out: loss_fn(out, torch.zeros(batch, 3), stats, params.aux_loss_weight))
     cells, fed = None, train_ds
     if params.size_cells > 0:  # the dense size-histogram task: a head on the last feature map, training only
         from .instances import read_particles
