@@ -1,14 +1,17 @@
 #!/usr/bin/env python
 """The instance estimator's calibrated read-out, refitted every way it can be on a trained model:
 what it reads (`train.instances.readout`: the footprints' statistics, or those and the size
-map's) and what it is fitted on (the training split, or the training and validation splits),
-scored per target on the test split of each dataset beside its visible-particle ceiling.
+map's), what it is fitted on (the training split, or the training and validation splits) and
+the test-time views its maps are averaged over (`train.instances.tta`; `--tta`, default the
+model's), scored per target on the test split of each dataset beside its visible-particle ceiling.
 
-The network and the post-processing stay as trained; only the ridge read-out changes, so the
-rows are comparable on one model (training fits `train+val`, with `train.instances.readout`).
+The network and the post-processing stay as trained; only the views and the ridge read-out
+change, so the rows are comparable on one model (training fits `train+val`, with the config's
+`train.instances.readout` and `tta`).
 
     .venv/bin/python bench/instance_readout.py --config config/config.yaml \
-        --model results/models/instances/model.pt --datasets train train_cycles --out bench/out/readout.json
+        --model results/models/instances/model.pt --datasets train train_cycles --tta none d4 \
+        --out bench/out/readout.json
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ def main() -> None:
     from psdfactory.learn.ceiling import dataset_ceilings_from_config
     from psdfactory.learn.data import targets, training_rows
     from psdfactory.learn.evaluate import eval_rows
-    from psdfactory.learn.instances import READOUTS, InstanceEstimator, torch_maps_fn
+    from psdfactory.learn.instances import READOUTS, TTA_VIEWS, InstanceEstimator, torch_maps_fn
     from psdfactory.learn.metrics import r2_scores
     from psdfactory.learn.readout import apply_readout, fit_readout
     from psdfactory.learn.runtime import load_model
@@ -56,6 +59,8 @@ def main() -> None:
     ap.add_argument("--results", help="results root (default: the config's)")
     ap.add_argument("--model", required=True, help="an instance estimator's model.pt")
     ap.add_argument("--datasets", nargs="+", help="datasets to score (default: the config's evaluated datasets)")
+    ap.add_argument("--tta", nargs="+", choices=list(TTA_VIEWS),
+                    help="test-time views to score (default: the model's own)")
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--out", help="write the figures to this JSON file")
     a = ap.parse_args()
@@ -67,44 +72,46 @@ def main() -> None:
     model, meta = load_model(Path(a.model))
     if meta.get("arch") != "instances":
         raise SystemExit(f"{a.model} is a {meta.get('arch')} model, not the instance estimator")
-    est = InstanceEstimator(torch_maps_fn(model), meta)
     datasets = a.datasets or psd_config.evaluation_datasets(cfg)
-
-    t0 = time.perf_counter()
     train_rows, val_rows, _ = training_rows(root, meta["params"]["datasets"])
-    fit_x = {"train": stats_of(est, train_rows, root)}
-    fit_x["train+val"] = np.concatenate([fit_x["train"], stats_of(est, val_rows, root)])
     fit_y = {"train": targets(train_rows).numpy()}
     fit_y["train+val"] = np.concatenate([fit_y["train"], targets(val_rows).numpy()])
-    scored, ceilings = {}, {}
+    ceilings = {}
     for d in datasets:
-        rows = eval_rows(root, d)
-        scored[d] = (stats_of(est, rows, root), targets(rows).numpy())
         vis = dataset_ceilings_from_config(cfg, root, d)["visible"]
         ceilings[d] = [vis[t] for t in TARGETS] if vis else None
-    print(f"instance statistics of {len(fit_y['train+val'])} training and "
-          f"{sum(len(y) for _, y in scored.values())} scored images in {time.perf_counter() - t0:.0f} s")
 
-    out = {"model": str(a.model), "trained_with": meta.get("readout_features", "footprints"), "ceilings": ceilings,
-           "rows": []}
-    for fit in fit_x:
-        for readout, features in READOUTS.items():
-            ro = fit_readout(fit_x[fit], fit_y[fit], features=features)
-            r2 = {d: r2_scores(y, apply_readout(ro, x)).tolist() for d, (x, y) in scored.items()}
-            out["rows"].append({"readout": readout, "fitted_on": fit, "n_scenes": ro["n_scenes"],
-                                "cv_r2": ro["cv_r2"], "r2": r2})
+    out = {"model": str(a.model), "trained_with": {k: meta.get(k) for k in ("readout_features", "tta")},
+           "ceilings": ceilings, "rows": []}
+    for tta in a.tta or [meta.get("tta", "none")]:
+        est = InstanceEstimator(torch_maps_fn(model), {**meta, "tta": tta})
+        t0 = time.perf_counter()
+        fit_x = {"train": stats_of(est, train_rows, root)}
+        fit_x["train+val"] = np.concatenate([fit_x["train"], stats_of(est, val_rows, root)])
+        scored = {}
+        for d in datasets:
+            rows = eval_rows(root, d)
+            scored[d] = (stats_of(est, rows, root), targets(rows).numpy())
+        print(f"tta {tta} ({len(TTA_VIEWS[tta])} views): instance statistics of {len(fit_y['train+val'])} training "
+              f"and {sum(len(y) for _, y in scored.values())} scored images in {time.perf_counter() - t0:.0f} s")
+        for fit in fit_x:
+            for readout, features in READOUTS.items():
+                ro = fit_readout(fit_x[fit], fit_y[fit], features=features)
+                r2 = {d: r2_scores(y, apply_readout(ro, x)).tolist() for d, (x, y) in scored.items()}
+                out["rows"].append({"tta": tta, "readout": readout, "fitted_on": fit, "n_scenes": ro["n_scenes"],
+                                    "cv_r2": ro["cv_r2"], "r2": r2})
 
     def cell(r: list[float], c: list[float] | None) -> str:
         return " / ".join(f"{v:.3f}" + (f" ({100 * v / cv:.0f} %)" if c and cv > 0 else "")
                           for v, cv in zip(r, c or [None] * len(r), strict=True))
 
     print(f"\nper-target R² {' / '.join(NAMES)} (fraction of the dataset's visible-particle ceiling)")
-    print("| read-out | fitted on | " + " | ".join(datasets) + " |")
-    print("|---|---|" + "---|" * len(datasets))
-    print("| visible-particle ceiling | | " + " | ".join(cell(ceilings[d], None) if ceilings[d] else "n/a"
+    print("| tta | read-out | fitted on | " + " | ".join(datasets) + " |")
+    print("|---|---|---|" + "---|" * len(datasets))
+    print("| | visible-particle ceiling | | " + " | ".join(cell(ceilings[d], None) if ceilings[d] else "n/a"
                                                       for d in datasets) + " |")
     for row in out["rows"]:
-        print(f"| {row['readout']} | {row['fitted_on']} ({row['n_scenes']} scenes) | "
+        print(f"| {row['tta']} | {row['readout']} | {row['fitted_on']} ({row['n_scenes']} scenes) | "
               + " | ".join(cell(row["r2"][d], ceilings[d]) for d in datasets) + " |")
     if a.out:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)

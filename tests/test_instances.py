@@ -17,9 +17,11 @@ from psdfactory.learn.instances import (
     DEFAULT_POSTPROCESS,
     MAPS,
     READOUTS,
+    TTA_VIEWS,
     InstanceEstimator,
     InstanceNet,
     InstanceSettings,
+    averaged_maps,
     decode_size,
     encode_size,
     fully_visible,
@@ -114,6 +116,53 @@ def test_perfect_maps_give_back_the_true_instances():
     assert sorted(got.measurements.area_mm2) == pytest.approx(sorted(ref.area_mm2), rel=0.02)
     assert got.calibrated == pytest.approx(got.raw)  # no read-out: the raw percentiles
     assert got.sizes_mm.shape == (6,) and got.stats.shape == (len(STAT_NAMES),)
+
+
+@pytest.mark.parametrize("tta", ["flips", "d4"])
+def test_test_time_views_are_turned_back_into_the_image_frame(tta):
+    """averaged_maps: maps that follow the image (here its own pixels) come back unchanged on a
+    non-square image; a map that marks its input's top-left pixel, whatever the view, comes
+    back as a quarter on each of the image's four corners (each corner is one view in four)."""
+    x = torch.arange(2 * 3 * 5 * 7, dtype=torch.float32).reshape(2, 3, 5, 7)
+    seen = []
+
+    def follows(v):
+        seen.append(tuple(v.shape[-2:]))
+        return v[:, :2].numpy()
+
+    got = averaged_maps(follows, x, TTA_VIEWS[tta])
+    assert got.shape == (2, 2, 5, 7) and np.allclose(got, x[:, :2].numpy())
+    assert len(seen) == len(TTA_VIEWS[tta]) and ((7, 5) in seen) == (tta == "d4")  # quarter turns swap H and W
+
+    def top_left(v):
+        m = np.zeros((v.shape[0], 1, *v.shape[-2:]), np.float32)
+        m[:, :, 0, 0] = 1
+        return m
+
+    got = averaged_maps(top_left, x, TTA_VIEWS[tta])[0, 0]
+    corners = np.zeros((5, 7))
+    corners[[0, 0, -1, -1], [0, -1, 0, -1]] = 0.25
+    assert np.allclose(got, corners)
+
+
+def test_estimator_averages_the_model_views_and_checks_the_setting():
+    from psdfactory.learn.instances import readout_problems
+
+    calls = []
+    maps = np.zeros((1, 4, 16, 16), np.float32)
+    for tta, n in (("none", 1), ("flips", 4), ("d4", 8)):
+        calls.clear()
+        InstanceEstimator(lambda x: calls.append(1) or maps, {"tta": tta}).maps(torch.zeros(1, 3, 16, 16,
+                                                                                              dtype=torch.uint8))
+        assert len(calls) == n
+    calls.clear()
+    InstanceEstimator(lambda x: calls.append(1) or maps, {}).maps(torch.zeros(1, 3, 16, 16, dtype=torch.uint8))
+    assert len(calls) == 1  # a model file from before test-time views: one view
+    defaults = psd_config.train_params(tiny_config(), "instances")["instances"]
+    assert InstanceSettings.from_dict(defaults).tta == "d4"  # the schema default
+    with pytest.raises(PsdError, match="train.instances.tta"):
+        InstanceSettings.from_dict({**defaults, "tta": "d8"})
+    assert any("tta" in p for p in readout_problems({"tta": "d8"}))
 
 
 @pytest.mark.parametrize("shape", [(1, 3, 33, 47), (2, 3, 64, 64), (1, 3, 9, 70)])
@@ -236,6 +285,7 @@ def test_tiny_training_writes_a_plain_model_file(tiny):
     assert len(meta["readout"]["weights"]) == len(meta["readout"]["features"]) + 1
     assert set(meta["postprocess"]) >= {"threshold", "h"} and meta["maps"] == list(MAPS)
     assert meta["sieve_method"] == "min_feret"  # the schema default: the size map is measured, not (yet) better
+    assert meta["tta"] == "d4"  # calibrated on the maps averaged over the 8 views, as it is run
     # the read-out reads what train.instances.readout names, fitted on the train and the val scene
     assert meta["readout"]["features"] == list(READOUTS[meta["readout_features"]])
     assert meta["readout"]["n_scenes"] == 2

@@ -143,7 +143,8 @@ def export_instances(model, meta: dict, out_dir: Path) -> dict:
     report = {"arch": meta["arch"], "input_size": size, "mm_per_px": meta["mm_per_px"],
               "input": "float32 Nx3xHxW (any H, W), RGB/255 normalised with ImageNet mean/std, at mm_per_px",
               "output": "float32 NxCxHxW maps in [0, 1], C = len(maps): foreground, boundary, normalised distance, "
-                        "size map (log size of each pixel's particle); post-process with "
+                        "size map (log size of each pixel's particle); average them over the views "
+                        "meta.json's tta names, then post-process with "
                         "psdfactory.learn.instances.InstanceEstimator (watershed, measurement, read-out in meta.json)",
               "onnx": {"path": str(onnx_path), "max_abs_diff": diff},
               "torchscript": None, "not_exported": "TorchScript and int8: not for the instance estimator"}

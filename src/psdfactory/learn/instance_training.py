@@ -179,7 +179,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     # calibration: post-processing on the validation masks, the read-out on the training split
     t0 = time.perf_counter()
     meta = {"arch": ARCH, "weights": weights_used, "sieve_method": settings.sieve_method, "readout": None,
-            "postprocess": dict(DEFAULT_POSTPROCESS)}
+            "postprocess": dict(DEFAULT_POSTPROCESS), "tta": settings.tta}
     est = InstanceEstimator(torch_maps_fn(model, device, "fp32"), meta)  # as evaluate and predict run it
     val_maps = all_maps(est, x_val)
     val_masks = [read_png(Path(results_root) / r["mask_path"]) for r in val_rows]
@@ -224,6 +224,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         "postprocess": post,
         "sieve_method": settings.sieve_method,
         "readout_features": settings.readout,
+        "tta": settings.tta,
         "readout": readout,
         "boundary_pos_weight": pw,
         # the validation scenes are in the read-out's fit: its out-of-fold R² is the honest figure

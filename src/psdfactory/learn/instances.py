@@ -26,7 +26,9 @@ it, then read the PSD off the measured particles.
   fines; the read-out learns what they add), reading the statistics ``train.instances.readout``
   names (READOUTS: the footprints', and with ``footprints+size_map`` the size map's too). All of
   it is stored as plain lists in the model file's meta.
-- **Inference** (`InstanceEstimator`): full image → maps → `split_instances` → `measure_instances`
+- **Inference** (`InstanceEstimator`): full image → maps (averaged over the views
+  ``train.instances.tta`` names: by default all 8 quarter turns and mirror images, each turned
+  back, `averaged_maps`) → `split_instances` → `measure_instances`
   at the image's mm per pixel (sieve size per ``train.instances.sieve_method``: by default the
   footprint's min Feret diameter; ``size_map``, the size map's median over the instance, reads
   partly hidden grains whole but misreads the fines and transfers worse to Cycles renders —
@@ -83,6 +85,14 @@ POSTPROCESS_GRID = {"h": (0.1, 0.2, 0.35, 0.5), "use_boundary": (False, True), "
 # what the calibrated read-out may read (train.instances.readout): the instances' footprint
 # statistics, or those and the same statistics of the size map
 READOUTS = {"footprints": READOUT_FEATURES, "footprints+size_map": MAP_READOUT_FEATURES}
+# test-time augmentation (train.instances.tta): the maps averaged over these views of the image,
+# each (quarter turns, mirrored) and turned back — the symmetries the training crops are drawn
+# under, so each view is an image of the kind the network learnt
+TTA_VIEWS = {
+    "none": ((0, False),),
+    "flips": ((0, False), (0, True), (2, False), (2, True)),
+    "d4": tuple((k, flip) for k in range(4) for flip in (False, True)),
+}
 
 
 @dataclass(frozen=True)
@@ -95,6 +105,7 @@ class InstanceSettings:
     lr: float  # Adam learning rate
     sieve_method: str  # min_feret | ellipse_minor | size_map
     readout: str  # footprints | footprints+size_map: what the calibrated read-out reads (READOUTS)
+    tta: str  # none | flips | d4: the views of each image whose maps are averaged (TTA_VIEWS)
 
     @classmethod
     def from_dict(cls, d: dict) -> InstanceSettings:
@@ -105,6 +116,8 @@ class InstanceSettings:
             raise PsdError(f"train.instances.sieve_method must be one of {', '.join(SIEVE_METHODS)}")
         if s.readout not in READOUTS:
             raise PsdError(f"train.instances.readout must be one of {', '.join(READOUTS)}")
+        if s.tta not in TTA_VIEWS:
+            raise PsdError(f"train.instances.tta must be one of {', '.join(TTA_VIEWS)}")
         return s
 
 
@@ -300,12 +313,32 @@ def random_crops(images: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor,
             continue
         k = int(torch.randint(0, 4, (1,), generator=gen))
         flip = bool(torch.randint(0, 2, (1,), generator=gen))
-        x, t = torch.rot90(x, k, dims=(1, 2)), torch.rot90(t, k, dims=(1, 2))
-        if flip:
-            x, t = torch.flip(x, dims=(2,)), torch.flip(t, dims=(2,))
-        xs.append(x)
-        ts.append(t)
+        xs.append(view(x, k, flip))
+        ts.append(view(t, k, flip))
     return torch.stack(xs), torch.stack(ts)
+
+
+def view(x: torch.Tensor, k: int, flip: bool) -> torch.Tensor:
+    """`x` (…×H×W) turned by k quarter turns, then mirrored left-right with `flip`."""
+    x = torch.rot90(x, k, dims=(-2, -1))
+    return torch.flip(x, dims=(-1,)) if flip else x
+
+
+def unview(x: torch.Tensor, k: int, flip: bool) -> torch.Tensor:
+    """The inverse of `view`: maps of a viewed image back in the image's own frame."""
+    x = torch.flip(x, dims=(-1,)) if flip else x
+    return torch.rot90(x, -k, dims=(-2, -1))
+
+
+def averaged_maps(maps_fn, x: torch.Tensor, views: tuple[tuple[int, bool], ...]) -> np.ndarray:
+    """The mean of `maps_fn` (N×3×H×W → N×C×H×W maps) over `views` of the images `x`, each
+    view's maps turned back into the image's frame (test-time augmentation; any H, W)."""
+    total = None
+    for k, flip in views:
+        m = torch.from_numpy(np.asarray(maps_fn(view(x, k, flip).contiguous()), dtype=np.float32))
+        m = unview(m, k, flip)
+        total = m if total is None else total + m
+    return (total / len(views)).numpy()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -355,11 +388,13 @@ class InstanceEstimator:
         self.post = dict(meta.get("postprocess") or DEFAULT_POSTPROCESS)
         self.method = meta.get("sieve_method", DEFAULT_SIEVE_METHOD)
         self.readout = meta.get("readout")
+        self.views = TTA_VIEWS[meta.get("tta", "none")]  # a model from before TTA: one view
 
     def maps(self, images_u8: torch.Tensor) -> np.ndarray:
+        """The maps of uint8 N×3×H×W images, averaged over the model's test-time views."""
         from .data import normalise
 
-        return np.asarray(self.maps_fn(normalise(images_u8)), dtype=np.float32)
+        return averaged_maps(self.maps_fn, normalise(images_u8), self.views)
 
     def analyse_maps(self, maps: np.ndarray, mm_per_px: float, post: dict | None = None) -> InstanceResult:
         mask = postprocess(maps, post or self.post)
@@ -526,6 +561,8 @@ def readout_problems(meta: dict) -> list[str]:
     maps = meta.get("maps", list(MASK_MAPS))
     if not (isinstance(maps, list) and tuple(maps) in (MASK_MAPS, MAPS)):
         problems.append(f"maps must be {list(MASK_MAPS)} or {list(MAPS)}")
+    if meta.get("tta", "none") not in TTA_VIEWS:
+        problems.append(f"tta must be one of {', '.join(TTA_VIEWS)}")
     if meta.get("sieve_method") not in SIEVE_METHODS:
         problems.append(f"sieve_method must be one of {', '.join(SIEVE_METHODS)}")
     elif meta["sieve_method"] == "size_map" and (not isinstance(maps, list) or "size" not in maps):
