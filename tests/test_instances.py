@@ -159,7 +159,8 @@ def test_estimator_averages_the_model_views_and_checks_the_setting():
     InstanceEstimator(lambda x: calls.append(1) or maps, {}).maps(torch.zeros(1, 3, 16, 16, dtype=torch.uint8))
     assert len(calls) == 1  # a model file from before test-time views: one view
     defaults = psd_config.train_params(tiny_config(), "instances")["instances"]
-    assert InstanceSettings.from_dict(defaults).tta == "d4"  # the schema default
+    assert InstanceSettings.from_dict(defaults).tta == "none"  # the schema default
+    assert InstanceSettings.from_dict({**defaults, "tta": "d4"}).tta == "d4"
     with pytest.raises(PsdError, match="train.instances.tta"):
         InstanceSettings.from_dict({**defaults, "tta": "d8"})
     assert any("tta" in p for p in readout_problems({"tta": "d8"}))
@@ -285,7 +286,7 @@ def test_tiny_training_writes_a_plain_model_file(tiny):
     assert len(meta["readout"]["weights"]) == len(meta["readout"]["features"]) + 1
     assert set(meta["postprocess"]) >= {"threshold", "h"} and meta["maps"] == list(MAPS)
     assert meta["sieve_method"] == "min_feret"  # the schema default: the size map is measured, not (yet) better
-    assert meta["tta"] == "d4"  # calibrated on the maps averaged over the 8 views, as it is run
+    assert meta["tta"] == "none"  # the schema default: calibrated on the maps of the image alone, as it is run
     # the read-out reads what train.instances.readout names, fitted on the train and the val scene
     assert meta["readout"]["features"] == list(READOUTS[meta["readout_features"]])
     assert meta["readout"]["n_scenes"] == 2
@@ -472,6 +473,16 @@ def test_export_onnx_maps_and_predict_with_them(tiny, tmp_path):
     assert [got[k] for k in keys] == pytest.approx([ref[k] for k in keys], abs=1e-3)
     with pytest.raises(PsdError, match="int8"):
         export(model_path, tmp_path / "exp8", int8_results=root, dataset="tiny")
+    # with test-time views (train.instances.tta) the ONNX export reads the image as PyTorch does
+    from psdfactory.learn.runtime import load_model, save_model
+
+    model, meta = load_model(model_path)
+    save_model(tmp_path / "d4" / "model.pt", model, {**meta, "tta": "d4"})
+    export(tmp_path / "d4" / "model.pt", tmp_path / "exp_d4")
+    assert json.loads((tmp_path / "exp_d4" / "meta.json").read_text())["tta"] == "d4"
+    ref = predict_files(tmp_path / "d4" / "model.pt", [img])[0]
+    got = predict_files(tmp_path / "exp_d4" / "model.onnx", [img])[0]
+    assert not got["error"] and [got[k] for k in keys] == pytest.approx([ref[k] for k in keys], abs=1e-3)
     # a meta.json with a broken read-out is refused before anything runs
     meta = json.loads((tmp_path / "exp" / "meta.json").read_text())
     meta["readout"]["weights"] = [[1.0]]

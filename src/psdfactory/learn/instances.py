@@ -26,9 +26,9 @@ it, then read the PSD off the measured particles.
   fines; the read-out learns what they add), reading the statistics ``train.instances.readout``
   names (READOUTS: the footprints', and with ``footprints+size_map`` the size map's too). All of
   it is stored as plain lists in the model file's meta.
-- **Inference** (`InstanceEstimator`): full image → maps (averaged over the views
-  ``train.instances.tta`` names: by default all 8 quarter turns and mirror images, each turned
-  back, `averaged_maps`) → `split_instances` → `measure_instances`
+- **Inference** (`InstanceEstimator`): full image → maps (with ``train.instances.tta``
+  averaged over views of the image — its quarter turns and mirror images, each turned back,
+  `averaged_maps`; off by default) → `split_instances` → `measure_instances`
   at the image's mm per pixel (sieve size per ``train.instances.sieve_method``: by default the
   footprint's min Feret diameter; ``size_map``, the size map's median over the instance, reads
   partly hidden grains whole but misreads the fines and transfers worse to Cycles renders —
