@@ -4,6 +4,7 @@ table leads with the ceilings, per-target R² as a fraction of them, and re-rend
 import csv
 import json
 import shutil
+from pathlib import Path
 
 import pytest
 
@@ -19,14 +20,35 @@ def test_inputs_are_matched_to_the_configured_architectures_and_datasets():
     cfg["train"]["architectures"] = ["resnet18", "efficientnet_b0"]
     two = ["a.json", "b.json"]
     inputs = ReportInputs.from_lists(cfg, two, ["a.png", "b.png"], ["a.csv", "b.csv"], two, ["s.parquet"],
-                                     ["tiny.png"], ["compare.json", "compare.png"])
-    assert inputs.metrics["efficientnet_b0"].name == "b.json" and inputs.contact_sheets["tiny"].name == "tiny.png"
+                                     ["r/tiny/contact_sheet.png"], ["compare.json", "compare.png"])
+    assert inputs.metrics["efficientnet_b0"].name == "b.json"
+    assert inputs.contact_sheets["tiny"] == Path("r/tiny/contact_sheet.png")
     assert inputs.compare[1].name == "compare.png"
     with pytest.raises(PsdError, match="scatters: 1 files for 2 entries"):
         ReportInputs.from_lists(cfg, two, ["a.png"], ["a.csv", "b.csv"], two, ["s.parquet"])
     with pytest.raises(PsdError, match="contact sheets"):
         ReportInputs.from_lists(cfg, two, ["a.png", "b.png"], ["a.csv", "b.csv"], two, ["s.parquet"],
-                                ["x.png", "y.png"])
+                                ["r/tiny/contact_sheet.png", "r/other/contact_sheet.png"])
+
+
+def test_dataset_files_are_matched_by_their_folder_whatever_the_config_order():
+    """The rule lists a dataset's files in the config's order; the config reaches the report as
+    JSON with sorted keys (as the workflow passes every stage's params), so position alone would
+    give one dataset another's ceilings and contact sheet."""
+    cfg = tiny_config()
+    cfg["datasets"] = {"train": cfg["datasets"]["tiny"], "ood_test": cfg["datasets"]["tiny"]}
+    rule_order = list(cfg["datasets"])
+    as_passed = json.loads(json.dumps(cfg, sort_keys=True))
+    assert list(as_passed["datasets"]) != rule_order  # the order the report sees differs
+    n = len(as_passed["train"]["architectures"])
+    per_arch = (["m.json"] * n, ["s.png"] * n, ["h.csv"] * n, ["b.json"] * n, ["s.parquet"])
+    inputs = ReportInputs.from_lists(as_passed, *per_arch, [f"r/{d}/contact_sheet.png" for d in rule_order],
+                                     ceilings=[f"r/{d}/ceiling.json" for d in rule_order])
+    for d in rule_order:
+        assert inputs.ceilings[d] == Path(f"r/{d}/ceiling.json")
+        assert inputs.contact_sheets[d] == Path(f"r/{d}/contact_sheet.png")
+    with pytest.raises(PsdError, match="ceilings: expected one file in the folder of each dataset"):
+        ReportInputs.from_lists(as_passed, *per_arch, ceilings=["r/train/ceiling.json", "r/train/ceiling.json"])
 
 
 def _fake_results(root, arch: str) -> dict:

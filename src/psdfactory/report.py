@@ -34,8 +34,11 @@ class ReportInputs:
     def from_lists(cls, config: dict, metrics: list, scatters: list, histories: list, bench: list, manifests: list,
                    contact_sheets: list | None = None, compare: list | None = None,
                    ceilings: list | None = None) -> ReportInputs:
-        """Per-architecture lists in the order of ``train.architectures``, contact sheets in the
-        order of ``datasets`` (the order of the report rule's ``expand()``)."""
+        """Per-architecture lists in the order of ``train.architectures`` (a list keeps its
+        order through the rule's JSON); a dataset's files (``<results>/<dataset>/contact_sheet.png``,
+        ``.../ceiling.json``) keyed by their dataset's folder, not by position: the config reaches
+        the report as JSON with sorted keys, so ``datasets`` comes in another order than the
+        rule's ``expand()``."""
         archs, datasets = list(config["train"]["architectures"]), list(config["datasets"])
 
         def keyed(what: str, files: list, keys: list[str]) -> dict[str, Path]:
@@ -43,11 +46,18 @@ class ReportInputs:
                 raise PsdError(f"{what}: {len(files)} files for {len(keys)} entries ({', '.join(keys)})")
             return dict(zip(keys, map(Path, files), strict=True))
 
+        def by_dataset(what: str, files: list) -> dict[str, Path]:
+            out = {Path(f).parent.name: Path(f) for f in files}
+            if len(out) != len(files) or set(out) != set(datasets):
+                raise PsdError(f"{what}: expected one file in the folder of each dataset ({', '.join(datasets)}), "
+                               f"got {', '.join(map(str, files))}")
+            return out
+
         return cls(keyed("metrics", metrics, archs), keyed("scatters", scatters, archs),
                    keyed("histories", histories, archs), keyed("bench", bench, archs), [Path(m) for m in manifests],
-                   keyed("contact sheets", contact_sheets, datasets) if contact_sheets else {},
+                   by_dataset("contact sheets", contact_sheets) if contact_sheets else {},
                    (Path(compare[0]), Path(compare[1])) if compare else None,
-                   keyed("ceilings", ceilings, datasets) if ceilings else {})
+                   by_dataset("ceilings", ceilings) if ceilings else {})
 
 
 def dataset_tables(manifests: list[Path], datasets: list[str]) -> dict:
