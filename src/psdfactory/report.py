@@ -201,13 +201,13 @@ INSTANCE_NOTE = ("The instance estimator segments every particle (a ResNet-18-tr
                  "foreground, boundary, distance and size maps, then a watershed), measures each one, and reads "
                  "d10/d50/d90 off the measured particles: 'raw' = the number-weighted percentiles of the particles "
                  "not touching the image edge; 'calibrated' = a ridge read-out from the instance statistics to the "
-                 "labels fitted on the training split (the camera cannot see the hidden fines) — the figure the "
-                 "accuracy table shows. Precision / recall / F1: predicted vs true instances matched one-to-one at IoU "
-                 "≥ 0.5. Size error: |estimated − true sieve size| / true size of matched particles not touching the "
-                 "edge, with the model's sieve method; 'fully visible' also excludes any particle bordering a higher "
-                 "one (it may be partly hidden), per method: min Feret diameter and ellipse minor axis of the "
-                 "footprint, and the size map (the network's estimate of the whole particle, median over the "
-                 "instance).")
+                 "labels fitted on the training and validation scenes (the camera cannot see the hidden fines) — the"
+                 " figure the accuracy table shows. Precision / recall / F1: predicted vs true instances matched "
+                 "one-to-one at IoU ≥ 0.5. Size error: |estimated − true sieve size| / true size of matched "
+                 "particles not touching the edge, with the model's sieve method; 'fully visible' also excludes any "
+                 "particle bordering a higher one (it may be partly hidden), per method: min Feret diameter and "
+                 "ellipse minor axis of the footprint, and the size map (the network's estimate of the whole "
+                 "particle, median over the instance).")
 
 
 def fast_path_rule(bench: dict[str, dict]) -> str:
