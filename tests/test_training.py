@@ -234,7 +234,7 @@ def test_evaluate_benchmark_report(dataset, trained, tmp_path):
     def prepare(folder):
         args = ["report", "--params", json.dumps(cfg)]
         for i, (flag, src) in enumerate(given.items()):
-            dst = folder / "in" / str(i) / src.name
+            dst = folder / "in" / str(i) / src.parent.name / src.name  # a dataset's file stays in its folder
             dst.parent.mkdir(parents=True)
             shutil.copyfile(src, dst)
             args += [f"--{flag}", str(dst)]
