@@ -149,15 +149,12 @@ def test_estimator_averages_the_model_views_and_checks_the_setting():
     from psdfactory.learn.instances import readout_problems
 
     calls = []
-    maps = np.zeros((1, 4, 16, 16), np.float32)
-    for tta, n in (("none", 1), ("flips", 4), ("d4", 8)):
+    maps, image = np.zeros((1, 4, 16, 16), np.float32), torch.zeros(1, 3, 16, 16, dtype=torch.uint8)
+    for meta, n in (({"tta": "none"}, 1), ({"tta": "flips"}, 4), ({"tta": "d4"}, 8),
+                    ({}, 1)):  # a model file from before test-time views: one view
         calls.clear()
-        InstanceEstimator(lambda x: calls.append(1) or maps, {"tta": tta}).maps(torch.zeros(1, 3, 16, 16,
-                                                                                              dtype=torch.uint8))
+        InstanceEstimator(lambda x: calls.append(1) or maps, meta).maps(image)
         assert len(calls) == n
-    calls.clear()
-    InstanceEstimator(lambda x: calls.append(1) or maps, {}).maps(torch.zeros(1, 3, 16, 16, dtype=torch.uint8))
-    assert len(calls) == 1  # a model file from before test-time views: one view
     defaults = psd_config.train_params(tiny_config(), "instances")["instances"]
     assert InstanceSettings.from_dict(defaults).tta == "none"  # the schema default
     assert InstanceSettings.from_dict({**defaults, "tta": "d4"}).tta == "d4"
