@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from psdfactory import PsdError
-from psdfactory.psd import cumulative_curve, weighted_percentiles
+from psdfactory.psd import SIZE_DEFINITIONS, cumulative_curve, weighted_percentiles
 from psdfactory.scene.labels import LabelParams, scene_labels, visible_pixels
 
 
@@ -54,8 +54,15 @@ def test_visible_pixels_and_bad_mask():
 
 def test_scene_labels():
     sizes = np.array([1.0, 2.0, 3.0, 4.0])
-    lab = scene_labels(sizes, sizes**3, np.array([0, 5, 1, 9]), 100, (0.5, 5.0),
-                       LabelParams(visible_min_px=2, psd_bins=32))
+    by_definition = {d: sizes * (k + 1) for k, d in enumerate(SIZE_DEFINITIONS)}
+    by_definition["sieve"] = sizes
+    lab = scene_labels(by_definition, sizes**3, np.array([0, 5, 1, 9]), 100, (0.5, 5.0),
+                       LabelParams(visible_min_px=2, psd_bins=32, size_definition="sieve", weighting="number"))
+    assert lab["size_definition"] == "sieve" and lab["weighting"] == "number"
+    assert lab["d50_b_axis_mm"] == pytest.approx(5.0) and lab["d50_sieve_mm"] == lab["d50_mm"]
+    vol = scene_labels(by_definition, sizes**3, np.array([0, 5, 1, 9]), 100, (0.5, 5.0),
+                       LabelParams(visible_min_px=2, psd_bins=32, size_definition="b-axis", weighting="volume"))
+    assert vol["d50_mm"] == vol["d50_b_axis_v_mm"] == vol["d50_v_mm"] > vol["d50_b_axis_mm"]
     assert lab["n_visible"] == 2
     assert lab["covered_fraction"] == pytest.approx(0.15)
     assert lab["d10_mm"] <= lab["d50_mm"] <= lab["d90_mm"]

@@ -10,7 +10,6 @@ from psdfactory.scene.shapes import (
     convex_mesh,
     make_particles,
     pack,
-    principal_dims,
     volume_and_centroid,
 )
 
@@ -24,13 +23,14 @@ def test_volume_and_centroid_of_unit_cube():
 
 
 @pytest.mark.parametrize("family", ["crushed_rock", "granule", "ellipsoid"])
-def test_size_is_intermediate_dimension_and_volume_is_exact(family):
+def test_size_is_the_b_axis_and_volume_is_exact(family):
     rng = np.random.default_rng(1)
     sizes = np.array([2.0, 7.5, 15.0])
     parts = make_particles(family, sizes, rng, ShapeParams.for_family(family))
     for p, s in zip(parts, sizes, strict=True):
-        dims = principal_dims(p.vertices)
-        assert dims[1] == pytest.approx(s, rel=1e-9)
+        dims = p.dims_mm  # the minimum-volume box (tests/test_sizes.py checks it)
+        assert dims[1] == pytest.approx(s, rel=1e-9) and p.size_mm == s
+        assert 0 < p.sieve_mm <= s * (1 + 1e-9)
         assert dims[0] >= dims[1] >= dims[2] > 0
         vol, centroid = volume_and_centroid(p.vertices, p.faces)
         assert vol == pytest.approx(p.volume_mm3) and vol > 0

@@ -15,7 +15,7 @@ import pyarrow as pa
 
 from . import PsdError
 from .io import read_json, read_parquet, write_parquet
-from .psd import TARGETS, VOLUME_TARGETS
+from .psd import ALL_DEFINITION_TARGETS, SIZE_DEFINITIONS, TARGETS, VOLUME_TARGETS, size_column
 from .seeding import assign_split
 
 SCENE_SCHEMA = pa.schema(
@@ -31,7 +31,10 @@ SCENE_SCHEMA = pa.schema(
         ("n_particles", pa.int32()),
         ("n_visible", pa.int32()),
         ("covered_fraction", pa.float64()),
+        ("size_definition", pa.string()),  # what d*_mm and d*_v_mm are percentiles of
+        ("weighting", pa.string()),  # what d*_mm count: number (particles) or volume
         *((t, pa.float64()) for t in TARGETS + VOLUME_TARGETS),
+        *((t, pa.float64()) for t in ALL_DEFINITION_TARGETS),  # every definition, e.g. d50_sieve_mm, d50_esd_v_mm
         ("shape_type", pa.string()),
         ("size_mean", pa.float64()),
         ("size_sigma", pa.float64()),
@@ -47,7 +50,8 @@ SCENE_SCHEMA = pa.schema(
     ]
 )
 
-PARTICLE_COLUMNS = ("scene_id", "particle_id", "size_mm", "volume_mm3", "x_mm", "y_mm", "z_mm", "visible_px")
+PARTICLE_COLUMNS = ("scene_id", "particle_id", "size_mm", "volume_mm3", "x_mm", "y_mm", "z_mm", "visible_px",
+                    *(size_column(d) for d in SIZE_DEFINITIONS))
 
 
 def shard_name(k: int) -> str:
@@ -64,6 +68,9 @@ def build_shard(scene_dirs: list[Path], results_root: Path, fractions: dict[str,
             if not (d / f).is_file():
                 raise PsdError(f"missing {d / f}; rerun the render job of {rec['scene_id']}")
         rel = d.resolve().relative_to(results_root)
+        if "size_definition" not in rec:
+            raise PsdError(f"{d / 'labels.json'} predates named size definitions; rerun the label job of "
+                           f"{rec.get('scene_id', d.name)}")
         row = {k: rec.get(k) for k in SCENE_SCHEMA.names}
         row.update(
             split=assign_split(spec["entropy"], fractions),

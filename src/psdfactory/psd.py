@@ -17,6 +17,36 @@ NAMES = tuple(f"d{q:g}" for q in PERCENTILES)  # "d10", "d50", "d90": the per-ta
 TARGETS = tuple(f"{n}_mm" for n in NAMES)  # the number-weighted labels (the paper's): what the models predict
 VOLUME_TARGETS = tuple(f"{n}_v_mm" for n in NAMES)  # the volume-weighted labels
 
+# What a particle's size is: the definitions people measure, one name each (scene/sizes.py measures
+# them). Of the solid particle: `sieve` (the side of the smallest square hole it passes), `b-axis`
+# and `c-axis` (the intermediate and short sides of its minimum-volume bounding box; the b-axis
+# is the size a scene's sampler draws), `esd` (equivalent-sphere diameter). Of the resting
+# particle seen from above: `feret-min`, `feret-max` (caliper widths of its silhouette) and `ecd`
+# (equivalent-circle diameter of the silhouette's area).
+SOLID_DEFINITIONS = ("sieve", "b-axis", "c-axis", "esd")
+FOOTPRINT_DEFINITIONS = ("feret-min", "feret-max", "ecd")
+SIZE_DEFINITIONS = SOLID_DEFINITIONS + FOOTPRINT_DEFINITIONS
+WEIGHTINGS = ("number", "volume")  # what a percentile counts: particles, or their volume (mass)
+
+
+def size_column(definition: str) -> str:
+    """The particle table's column of a size definition: 'b-axis' → 'b_axis_mm'."""
+    if definition not in SIZE_DEFINITIONS:
+        raise PsdError(f"unknown size definition {definition!r}; one of {', '.join(SIZE_DEFINITIONS)}")
+    return definition.replace("-", "_") + "_mm"
+
+
+def definition_targets(definition: str, weighting: str) -> tuple[str, ...]:
+    """The scene table's d10/d50/d90 columns of one definition and weighting, e.g. 'd50_sieve_mm'
+    (number) or 'd50_sieve_v_mm' (volume)."""
+    if weighting not in WEIGHTINGS:
+        raise PsdError(f"unknown weighting {weighting!r}; one of {', '.join(WEIGHTINGS)}")
+    key = size_column(definition)[:-3]
+    return tuple(f"{n}_{key}{'_v' if weighting == 'volume' else ''}_mm" for n in NAMES)
+
+
+ALL_DEFINITION_TARGETS = tuple(t for d in SIZE_DEFINITIONS for w in WEIGHTINGS for t in definition_targets(d, w))
+
 
 def weighted_percentiles(values: np.ndarray, weights: np.ndarray | None,
                          q: tuple[float, ...] = PERCENTILES) -> np.ndarray:

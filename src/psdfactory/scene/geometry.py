@@ -25,9 +25,10 @@ class Geometry:
     faces: np.ndarray
     vert_offsets: np.ndarray
     face_offsets: np.ndarray
-    size_mm: np.ndarray
+    size_mm: np.ndarray  # the drawn size: the b-axis
     volume_mm3: np.ndarray
-    dims_mm: np.ndarray
+    dims_mm: np.ndarray  # minimum-volume bounding box sides, a ≥ b ≥ c
+    sieve_mm: np.ndarray  # the side of the smallest square hole each particle passes
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Geometry:

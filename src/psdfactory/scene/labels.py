@@ -1,7 +1,9 @@
 """Stage 4: labels of a scene.
 
-- number-weighted d10/d50/d90 (the paper's labels: percentiles of the particle count);
-- volume-weighted d10/d50/d90 (what sieves and laser diffraction report);
+- d10/d50/d90 of every size definition (``psd.SIZE_DEFINITIONS``), number- and volume-weighted;
+- the training targets ``d*_mm`` (the configured definition and weighting: by default the sieve
+  size, number-weighted as the paper's labels) and ``d*_v_mm`` (the same definition,
+  volume-weighted, as sieves report mass);
 - the cumulative PSD curves Q0 (number) and Q3 (volume) on fixed size bins;
 - per-particle visible pixels from the instance mask and the count of visible particles.
 
@@ -17,7 +19,7 @@ import numpy as np
 
 from .. import PsdError
 from ..config import config_fields
-from ..psd import TARGETS, VOLUME_TARGETS, cumulative_curve, weighted_percentiles
+from ..psd import SIZE_DEFINITIONS, TARGETS, VOLUME_TARGETS, cumulative_curve, definition_targets, weighted_percentiles
 
 
 @dataclass(frozen=True)
@@ -26,6 +28,8 @@ class LabelParams:
 
     visible_min_px: int  # a particle with at least this many mask pixels counts as visible
     psd_bins: int  # points of the cumulative curves, log-spaced over the size bounds
+    size_definition: str  # what d*_mm are percentiles of (one of psd.SIZE_DEFINITIONS)
+    weighting: str  # what d*_mm count: "number" (particles) or "volume"
 
     @classmethod
     def from_dict(cls, d: dict) -> LabelParams:
@@ -40,21 +44,30 @@ def visible_pixels(mask: np.ndarray, n_particles: int) -> np.ndarray:
 
 
 def scene_labels(
-    sizes: np.ndarray, volumes: np.ndarray, visible_px: np.ndarray, image_px: int, bounds: tuple[float, float],
-    p: LabelParams,
+    sizes_by_definition: dict[str, np.ndarray], volumes: np.ndarray, visible_px: np.ndarray, image_px: int,
+    bounds: tuple[float, float], p: LabelParams,
 ) -> dict:
-    d_n = weighted_percentiles(sizes, None)
-    d_v = weighted_percentiles(sizes, volumes)
+    """A scene's labels from its particles' sizes under every definition (name → array)."""
+    per_definition = {}
+    for name in SIZE_DEFINITIONS:
+        for weighting, w in (("number", None), ("volume", volumes)):
+            d = weighted_percentiles(sizes_by_definition[name], w)
+            per_definition.update({t: float(v) for t, v in zip(definition_targets(name, weighting), d, strict=True)})
+    sizes = sizes_by_definition[p.size_definition]
+    d_main = [per_definition[t] for t in definition_targets(p.size_definition, p.weighting)]
+    d_v = [per_definition[t] for t in definition_targets(p.size_definition, "volume")]
     lo, hi = max(bounds[0], 1e-3), bounds[1]
     grid = np.geomspace(lo, hi, p.psd_bins)
     return {
         "n_particles": int(len(sizes)),
         "n_visible": int((visible_px >= p.visible_min_px).sum()),
         "covered_fraction": float(visible_px.sum() / image_px),  # image pixels showing a particle
-        **{t: float(d) for t, d in zip(TARGETS, d_n, strict=True)},
-        **{t: float(d) for t, d in zip(VOLUME_TARGETS, d_v, strict=True)},
+        "size_definition": p.size_definition,
+        "weighting": p.weighting,
+        **dict(zip(TARGETS, d_main, strict=True)),
+        **dict(zip(VOLUME_TARGETS, d_v, strict=True)),
+        **per_definition,
         "psd_size_mm": grid.tolist(),
         "psd_q0": cumulative_curve(sizes, np.ones_like(sizes), grid).tolist(),
         "psd_q3": cumulative_curve(sizes, volumes, grid).tolist(),
-        "weighting": "d*_mm: number-weighted (the paper's labels); d*_v_mm: volume-weighted",
     }

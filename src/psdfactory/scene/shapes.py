@@ -1,8 +1,9 @@
 """Particle shape families.
 
 Every particle gets its own mesh (vertices in mm, centred on its centre of volume, and
-outward-facing triangles). Its nominal size is its sieve size: the intermediate of its three
-principal dimensions. Its volume is the exact volume of the mesh.
+outward-facing triangles). Its drawn size is its b-axis: the intermediate side of its
+minimum-volume bounding box (the generator's size, as the seed paper's). Its volume is the exact
+volume of the mesh; its sieve size and the other definitions are measured on it (``sizes``).
 
 Families:
 - ``crushed_rock``: convex hull of 20-40 random points on a perturbed ellipsoid (angular, unique).
@@ -56,9 +57,10 @@ class ShapeParams:
 class Particle:
     vertices: np.ndarray  # (V, 3) float64, mm, centred on the centre of volume
     faces: np.ndarray  # (F, 3) int32, counter-clockwise seen from outside
-    size_mm: float  # sieve size = intermediate principal dimension
+    size_mm: float  # the drawn size: the b-axis (intermediate side of the minimum-volume bounding box)
     volume_mm3: float
-    dims_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))  # long, intermediate, short
+    dims_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))  # minimum box sides: a ≥ b ≥ c
+    sieve_mm: float = float("nan")  # the side of the smallest square hole it passes
 
 
 def fibonacci_sphere(n: int) -> np.ndarray:
@@ -107,44 +109,39 @@ def convex_mesh(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return verts, faces.astype(np.int32)
 
 
-def principal_dims(vertices: np.ndarray) -> np.ndarray:
-    """Extents along the principal axes, sorted long → short."""
-    centred = vertices - vertices.mean(axis=0)
-    _, _, vt = np.linalg.svd(centred, full_matrices=False)
-    proj = centred @ vt.T
-    return np.sort(proj.max(axis=0) - proj.min(axis=0))[::-1]
-
-
-def finish(vertices: np.ndarray, faces: np.ndarray, size_mm: float) -> Particle:
-    """Scale a unit shape so its sieve size is `size_mm`; centre it on its centre of volume."""
-    dims = principal_dims(vertices)
+def finish(vertices: np.ndarray, faces: np.ndarray, size_mm: float, dims: np.ndarray, sieve: float) -> Particle:
+    """Scale a unit shape (its minimum box `dims`, sieve size `sieve`) so that its b-axis is
+    `size_mm`; centre it on its centre of volume."""
     scale = size_mm / dims[1]
     v = vertices * scale
     vol, centroid = volume_and_centroid(v, faces)
-    return Particle(v - centroid, faces.astype(np.int32), float(size_mm), vol, dims * scale)
+    return Particle(v - centroid, faces.astype(np.int32), float(size_mm), vol, dims * scale, float(sieve * scale))
 
 
 def _axes(rng: np.random.Generator, p: ShapeParams) -> np.ndarray:
     return np.array([1.0, rng.uniform(*p.aspect_b), rng.uniform(*p.aspect_c)])
 
 
-def make_crushed_rock(rng: np.random.Generator, size_mm: float, p: ShapeParams) -> Particle:
+Mesh = tuple[np.ndarray, np.ndarray]  # (vertices, faces) of a shape before it is sized
+
+
+def make_crushed_rock(rng: np.random.Generator, p: ShapeParams) -> Mesh:
     n = int(rng.integers(p.n_points[0], p.n_points[1] + 1))
     dirs = random_directions(rng, n)
     pts = dirs * _axes(rng, p) * (1 + rng.uniform(-p.roughness, p.roughness, size=(n, 1)))
-    return finish(*convex_mesh(pts), size_mm)
+    return convex_mesh(pts)
 
 
 _SPHERE = fibonacci_sphere(92)
 
 
-def make_granule(rng: np.random.Generator, size_mm: float, p: ShapeParams) -> Particle:
+def make_granule(rng: np.random.Generator, p: ShapeParams) -> Mesh:
     bumps = 1 + rng.uniform(-p.roughness, p.roughness, size=(len(_SPHERE), 1))
-    return finish(*convex_mesh(_SPHERE * _axes(rng, p) * bumps), size_mm)
+    return convex_mesh(_SPHERE * _axes(rng, p) * bumps)
 
 
-def make_ellipsoid(rng: np.random.Generator, size_mm: float, p: ShapeParams) -> Particle:
-    return finish(*convex_mesh(_SPHERE * _axes(rng, p)), size_mm)
+def make_ellipsoid(rng: np.random.Generator, p: ShapeParams) -> Mesh:
+    return convex_mesh(_SPHERE * _axes(rng, p))
 
 
 @lru_cache(maxsize=64)
@@ -155,14 +152,13 @@ def load_mesh(path: str) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int32)
 
 
-def make_from_mesh(rng: np.random.Generator, size_mm: float, p: ShapeParams) -> Particle:
+def make_from_mesh(rng: np.random.Generator, p: ShapeParams) -> Mesh:
     if not p.mesh_files:
         raise PsdError("shape 'mesh' needs shape_params.mesh_files: a list of OBJ/STL/PLY/GLB files")
-    verts, faces = load_mesh(p.mesh_files[int(rng.integers(len(p.mesh_files)))])
-    return finish(verts, faces, size_mm)
+    return load_mesh(p.mesh_files[int(rng.integers(len(p.mesh_files)))])
 
 
-MAKERS: dict[str, Callable[[np.random.Generator, float, ShapeParams], Particle]] = {
+MAKERS: dict[str, Callable[[np.random.Generator, ShapeParams], Mesh]] = {
     "crushed_rock": make_crushed_rock,
     "granule": make_granule,
     "ellipsoid": make_ellipsoid,
@@ -171,8 +167,19 @@ MAKERS: dict[str, Callable[[np.random.Generator, float, ShapeParams], Particle]]
 
 
 def make_particles(family: str, sizes_mm: np.ndarray, rng: np.random.Generator, params: ShapeParams) -> list[Particle]:
+    """One particle per drawn size (its b-axis, mm) with its minimum box and sieve size, measured
+    on all the scene's shapes at once (``sizes``)."""
+    from .sizes import minimum_box, pad_vertices, sieve_sizes
+
     maker = MAKERS[family]
-    return [maker(rng, float(s), params) for s in sizes_mm]
+    shapes = [maker(rng, params) for _ in sizes_mm]
+    if not shapes:
+        return []
+    offsets = np.concatenate([[0], np.cumsum([len(v) for v, _ in shapes])])
+    verts = pad_vertices(np.concatenate([v for v, _ in shapes]), offsets)
+    dims, axes = minimum_box(verts)
+    sieve = sieve_sizes(verts, axes)
+    return [finish(v, f, float(s), d, a) for (v, f), s, d, a in zip(shapes, sizes_mm, dims, sieve, strict=True)]
 
 
 def pack(particles: list[Particle]) -> dict[str, np.ndarray]:
@@ -187,4 +194,5 @@ def pack(particles: list[Particle]) -> dict[str, np.ndarray]:
         "size_mm": np.array([p.size_mm for p in particles]),
         "volume_mm3": np.array([p.volume_mm3 for p in particles]),
         "dims_mm": np.array([p.dims_mm for p in particles]).reshape(-1, 3),
+        "sieve_mm": np.array([p.sieve_mm for p in particles]),
     }

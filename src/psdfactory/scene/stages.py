@@ -172,7 +172,9 @@ def run_render(params: dict, scene_dir: Path) -> dict:
 def run_label(params: dict, scene_dir: Path) -> dict:
     import pyarrow as pa
 
+    from ..psd import SIZE_DEFINITIONS, size_column
     from .labels import LabelParams, scene_labels, visible_pixels
+    from .sizes import equivalent_sphere_diameter, footprints
 
     spec = read_json(scene_dir / "spec.json")
     sim = read_json(scene_dir / "simulate.json")
@@ -184,8 +186,14 @@ def run_label(params: dict, scene_dir: Path) -> dict:
         raise PsdError(f"{scene_dir / 'mask.png'} is not a {rend['resolution']}² 16-bit mask; rerun render")
     n = len(geometry)
     vis = visible_pixels(mask, n)
-    labels = scene_labels(geometry.size_mm, geometry.volume_mm3, vis, mask.size, tuple(spec["size_bounds"]),
-                          LabelParams.from_dict(params))
+    lp = LabelParams.from_dict(params)
+    by_column = {
+        "sieve_mm": geometry.sieve_mm, "a_axis_mm": geometry.dims_mm[:, 0], "b_axis_mm": geometry.dims_mm[:, 1],
+        "c_axis_mm": geometry.dims_mm[:, 2], "esd_mm": equivalent_sphere_diameter(geometry.volume_mm3),
+        **footprints(geometry.vertices, geometry.vert_offsets, quat),
+    }
+    by_definition = {d: by_column[size_column(d)] for d in SIZE_DEFINITIONS}
+    labels = scene_labels(by_definition, geometry.volume_mm3, vis, mask.size, tuple(spec["size_bounds"]), lp)
     record = {
         "scene_id": spec["scene_id"],
         "dataset": spec["dataset"],
@@ -207,22 +215,21 @@ def run_label(params: dict, scene_dir: Path) -> dict:
         {
             "scene_id": pa.array([spec["scene_id"]] * n, pa.string()),
             "particle_id": np.arange(n, dtype=np.int32),
-            "size_mm": geometry.size_mm,
+            "size_mm": by_definition[lp.size_definition],  # the labels' definition (size_definition)
+            **by_column,
             "volume_mm3": geometry.volume_mm3,
             "x_mm": pos[:, 0],
             "y_mm": pos[:, 1],
             "z_mm": pos[:, 2],
             "visible_px": vis.astype(np.int64),
-            "dim_long_mm": geometry.dims_mm[:, 0],
-            "dim_short_mm": geometry.dims_mm[:, 2],
             "settled": settled,
         }
     )
     write_parquet(scene_dir / "particles.parquet", particles)
     write_json(scene_dir / "labels.json", record)
-    logger.info(f"labelled {spec['scene_id']}: d10/d50/d90 = {record['d10_mm']:.2f}/{record['d50_mm']:.2f}/"
-        f"{record['d90_mm']:.2f} mm (number), {record['d10_v_mm']:.2f}/{record['d50_v_mm']:.2f}/"
-        f"{record['d90_v_mm']:.2f} mm (volume); {record['n_visible']}/{n} visible")
+    logger.info(f"labelled {spec['scene_id']}: {lp.size_definition} d10/d50/d90 = {record['d10_mm']:.2f}/"
+        f"{record['d50_mm']:.2f}/{record['d90_mm']:.2f} mm ({lp.weighting}), {record['d10_v_mm']:.2f}/"
+        f"{record['d50_v_mm']:.2f}/{record['d90_v_mm']:.2f} mm (volume); {record['n_visible']}/{n} visible")
     return record
 
 

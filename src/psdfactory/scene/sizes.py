@@ -1,0 +1,275 @@
+"""The sizes people measure a particle by, computed on its mesh (the names: ``psd.SIZE_DEFINITIONS``).
+
+Of the solid particle (pose-free; computed once per particle when it is made):
+- ``sieve``: the side of the smallest square hole it passes. A convex particle passes a square
+  hole when, for some passing direction, its shadow along that direction fits in the square: the
+  side is ``min over frames (u, v, d) of max(width along u, width along v)``, a width being the
+  extent of the particle's vertices along a direction (the shadow's width along u is the solid's).
+- ``b-axis``, ``c-axis`` (and the long ``a-axis``): the sides of its minimum-volume bounding box,
+  sorted long → short (not the PCA extents, which overstate them for angular particles).
+- ``esd``: the equivalent-sphere diameter of its exact volume.
+
+Of the resting particle seen from the camera (``footprints``, from its settled pose): the
+orthographic silhouette on the table's plane, ``feret-min`` and ``feret-max`` (its narrowest and
+widest caliper widths) and ``ecd`` (the diameter of the circle of the same area).
+
+Both minimisations over orientations run batched over every particle of a scene at once: a
+coarse set of starting frames, then a pattern search with random rotation axes and shrinking
+steps, each particle's frame kept apart (NumPy only, no per-particle Python loop). A particle's
+mesh is taken as convex (every built-in family is a convex hull); for a user's non-convex mesh
+the sizes are those of its convex hull, the shape calipers and sieves see.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SEARCH_SEED = 20240601  # fixed: the search's random axes never change a label between runs
+MIN_STEP_RAD = 2e-4  # the search stops refining a frame below this rotation (~0.01 % of a width)
+
+
+def pad_vertices(vertices: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Packed vertices (see ``shapes.pack``) → (N, Vmax, 3) float64, each particle centred on its
+    vertices' mean and padded with its own first vertex (which changes no width)."""
+    counts = np.diff(offsets)
+    n, vmax = len(counts), int(counts.max(initial=1))
+    idx = offsets[:-1, None] + np.minimum(np.arange(vmax)[None, :], counts[:, None] - 1)
+    v = np.asarray(vertices, dtype=np.float64)[idx]
+    return v - v.mean(axis=1, keepdims=True) if n else v
+
+
+def _rodrigues(axes: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Rotation matrices (…, 3, 3) about unit `axes` (…, 3) by `angles` (…)."""
+    x, y, z = axes[..., 0], axes[..., 1], axes[..., 2]
+    c, s = np.cos(angles), np.sin(angles)
+    t = 1 - c
+    return np.stack([
+        np.stack([t * x * x + c, t * x * y - s * z, t * x * z + s * y], -1),
+        np.stack([t * x * y + s * z, t * y * y + c, t * y * z - s * x], -1),
+        np.stack([t * x * z - s * y, t * y * z + s * x, t * z * z + c], -1),
+    ], -2)
+
+
+def _widths(verts: np.ndarray, frames: np.ndarray, rows: int) -> np.ndarray:
+    """Widths of each particle along the first `rows` axes of each of its frames.
+    verts (N, V, 3), frames (N, F, 3, 3) (rows = axes) → (N, F, rows)."""
+    n, f = frames.shape[:2]
+    dirs = frames[:, :, :rows, :].reshape(n, f * rows, 3)
+    p = verts @ dirs.transpose(0, 2, 1)  # (N, V, F*rows)
+    return (p.max(axis=1) - p.min(axis=1)).reshape(n, f, rows)
+
+
+def _box_objective(verts: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    return _widths(verts, frames, 3).prod(axis=-1)
+
+
+def _sieve_objective(verts: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    return _widths(verts, frames, 2).max(axis=-1)
+
+
+_CUBE = np.array([(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if x or y or z], dtype=float)
+CUBE_AXES = _CUBE / np.linalg.norm(_CUBE, axis=1, keepdims=True)  # 26 rotation axes: a cube's faces, edges, corners
+FACE_AXES = np.concatenate([np.eye(3), -np.eye(3)])
+
+
+def _search(verts: np.ndarray, frames: np.ndarray, objective, step0: float, keep: int = 2,
+            prune_after: int = 4, max_iter: int = 100, n_random: int = 8,
+            min_step: float = MIN_STEP_RAD, seed: int = 0, fixed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Minimise `objective` over each particle's frame by a pattern search from S starting frames
+    (N, S, 3, 3); after `prune_after` rounds only the `keep` best starts of each particle go on.
+    → (best value (N,), best frame (N, 3, 3))."""
+    rng = np.random.default_rng([SEARCH_SEED, seed])
+    n = len(verts)
+    exact = verts
+    verts, frames = verts.astype(np.float32), frames.astype(np.float32)  # twice as fast; the result is re-measured in float64
+    val = objective(verts, frames)
+    step = np.full(val.shape, step0)
+    fixed = FACE_AXES if fixed is None else fixed
+    active = np.arange(n)
+    for it in range(max_iter):
+        if it == prune_after and frames.shape[1] > keep:
+            order = np.argsort(val, axis=1)[:, :keep]
+            frames = np.take_along_axis(frames, order[:, :, None, None], axis=1)
+            val = np.take_along_axis(val, order, axis=1)
+            step = np.take_along_axis(step, order, axis=1)
+        live = (step[active] >= min_step).any(axis=1)
+        active = active[live]
+        if not len(active):
+            break
+        fr, st = frames[active], step[active]
+        rand = rng.normal(size=(n_random, 3))
+        axes = np.concatenate([fixed, rand / np.linalg.norm(rand, axis=1, keepdims=True)]).astype(np.float32)
+        c = len(axes)
+        # rotate each frame about one of its own axes: R_cand = frame^T-coords rotation applied on the left
+        rot = _rodrigues(np.broadcast_to(axes, st.shape + (c, 3)), st[..., None].astype(np.float32))  # (A, S, C, 3, 3)
+        cand = rot @ fr[:, :, None]  # rows of the frame mixed: a rotation in the frame's own coordinates
+        a, s_ = cand.shape[:2]
+        cv = objective(verts[active], cand.reshape(a, s_ * c, 3, 3)).reshape(a, s_, c)
+        best = cv.argmin(axis=2)
+        bv = np.take_along_axis(cv, best[..., None], axis=2)[..., 0]
+        better = bv < val[active] * (1 - 1e-12)
+        bf = np.take_along_axis(cand, best[..., None, None, None], axis=2)[:, :, 0]
+        frames[active] = np.where(better[..., None, None], bf, fr)
+        val[active] = np.where(better, bv, val[active])
+        step[active] = np.where(better, st, st * 0.5)
+    best = frames[np.arange(n), val.argmin(axis=1)].astype(np.float64)
+    u, _, vt = np.linalg.svd(best)  # the nearest rotation: float32 steps drift a little from orthonormal
+    best = u @ vt
+    return objective(exact, best[:, None])[:, 0], best
+
+
+def _pca_frames(verts: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) principal axes as rows (long first)."""
+    _, _, vt = np.linalg.svd(verts, full_matrices=False)
+    return vt
+
+
+def minimum_box(verts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sides of each particle's minimum-volume bounding box, sorted long → short (N, 3), and the
+    box's axes (N, 3, 3; rows in the same order). verts: (N, V, 3) as ``pad_vertices`` gives."""
+    n = len(verts)
+    if n == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3, 3))
+    pca = _pca_frames(verts)
+    starts = [pca]
+    for ax in np.eye(3):  # the PCA frame turned 45° about each of its axes
+        starts.append(_rodrigues(ax, np.array(np.pi / 4)) @ pca)
+    frames = np.stack(starts, axis=1)
+    _, best = _search(verts, frames, _box_objective, step0=0.25, min_step=2e-3)
+    w = _widths(verts, best[:, None], 3)[:, 0]
+    order = np.argsort(-w, axis=1)
+    return np.take_along_axis(w, order, axis=1), np.take_along_axis(best, order[..., None], axis=1)
+
+
+def sieve_sizes(verts: np.ndarray, box_axes: np.ndarray | None = None) -> np.ndarray:
+    """Side of the smallest square hole each particle passes (N,). verts: (N, V, 3);
+    `box_axes`: the minimum boxes' axes (rows long → short; computed when not given)."""
+    n = len(verts)
+    if n == 0:
+        return np.zeros(0)
+    if box_axes is None:
+        box_axes = minimum_box(verts)[1]
+    frames = np.concatenate([_box_starts(box_axes)[:, :3], _global_starts(verts, keep=6)], axis=1)
+    val, best = _search(verts, frames, _sieve_objective, step0=0.12, keep=2, prune_after=4)
+    # a second search from each particle's best frame, with other random axes and a smaller first
+    # step: a pattern search can stop early on the ridge where the two widths are equal
+    val2, _ = _search(verts, best[:, None], _sieve_objective, step0=0.01, keep=1, seed=1, fixed=CUBE_AXES)
+    return np.minimum(val, val2)
+
+
+def _box_starts(box_axes: np.ndarray) -> np.ndarray:
+    """(N, 12, 3, 3): passing along each box axis, the hole turned 0, 22.5, 45 and 67.5° about it."""
+    starts = []
+    for d in range(3):
+        rolled = np.roll(box_axes, -(d + 1), axis=1)  # rows (u, v, d): the passing direction last
+        for ang in np.deg2rad([0.0, 22.5, 45.0, 67.5]):
+            starts.append(_rodrigues(np.array([0.0, 0.0, 1.0]), np.array(ang)) @ rolled)
+    return np.stack(starts, axis=1)
+
+
+def _frame_grid(n_dirs: int, n_angles: int) -> np.ndarray:
+    """(n_dirs * n_angles, 3, 3) frames (rows u, v, d): passing directions d spread over a
+    hemisphere, the hole's side turned over a quarter turn about each."""
+    d = _hemisphere(n_dirs)
+    ref = np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    a = np.cross(d, ref)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = np.cross(d, a)
+    ang = np.arange(n_angles) * (np.pi / 2 / n_angles)
+    c, s = np.cos(ang)[None, :, None], np.sin(ang)[None, :, None]
+    u = c * a[:, None] + s * b[:, None]
+    v = -s * a[:, None] + c * b[:, None]
+    return np.stack([u, v, np.broadcast_to(d[:, None], u.shape)], axis=2).reshape(-1, 3, 3)
+
+
+def _hemisphere(n: int) -> np.ndarray:
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - i / n)  # a Fibonacci hemisphere (z ≥ 0)
+    theta = np.pi * (1 + 5**0.5) * i
+    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
+
+
+def _nearest_direction(dirs: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Index of the grid direction nearest each of `dirs` (a width is the same along ±u)."""
+    return np.abs(dirs @ grid.T).argmax(axis=1)
+
+
+GRID_FRAMES = _frame_grid(600, 18)  # 10,800 frames: every particle's sieve search starts from the best few
+GRID_DIRS = _hemisphere(2400)  # the widths the frames are ranked by: each frame's u and v looked up here
+GRID_PAIRS = np.stack([_nearest_direction(GRID_FRAMES[:, 0], GRID_DIRS),
+                       _nearest_direction(GRID_FRAMES[:, 1], GRID_DIRS)], axis=1)
+
+
+def _global_starts(verts: np.ndarray, keep: int = 3, chunk: int = 128) -> np.ndarray:
+    """(N, keep, 3, 3): the `keep` frames of GRID_FRAMES with the smallest sieve objective (their
+    widths looked up on GRID_DIRS), per particle."""
+    dirs = GRID_DIRS.T.astype(np.float32)
+    out = np.empty((len(verts), keep, 3, 3))
+    for lo in range(0, len(verts), chunk):
+        p = verts[lo:lo + chunk].astype(np.float32) @ dirs  # (n, V, K)
+        w = p.max(axis=1) - p.min(axis=1)
+        obj = np.maximum(w[:, GRID_PAIRS[:, 0]], w[:, GRID_PAIRS[:, 1]])
+        best = np.argpartition(obj, keep, axis=1)[:, :keep]
+        out[lo:lo + chunk] = GRID_FRAMES[best]
+    return out
+
+
+def equivalent_sphere_diameter(volume_mm3: np.ndarray) -> np.ndarray:
+    return np.cbrt(6.0 * np.asarray(volume_mm3, dtype=float) / np.pi)
+
+
+def solid_sizes(vertices: np.ndarray, vert_offsets: np.ndarray, volume_mm3: np.ndarray) -> dict[str, np.ndarray]:
+    """The pose-free sizes of packed particles: {"dims_mm": (N, 3) box sides a ≥ b ≥ c,
+    "sieve_mm": (N,), "esd_mm": (N,)}."""
+    verts = pad_vertices(vertices, vert_offsets)
+    dims, axes = minimum_box(verts)
+    return {"dims_mm": dims, "sieve_mm": sieve_sizes(verts, axes), "esd_mm": equivalent_sphere_diameter(volume_mm3)}
+
+
+# ---- footprints: the resting particle seen from above -----------------------------------------
+
+def quat_matrices(quat_xyzw: np.ndarray) -> np.ndarray:
+    """(N, 4) unit quaternions (x, y, z, w; pybullet's order) → (N, 3, 3) rotation matrices."""
+    q = np.asarray(quat_xyzw, dtype=float)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    x, y, z, w = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def polygon_measures(points: np.ndarray) -> tuple[float, float, float]:
+    """(feret_min, feret_max, area) of the convex hull of 2-D points (M, 2)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(points)
+    except (QhullError, ValueError):  # a degenerate (flat or single-point) shadow
+        span = np.ptp(points, axis=0) if len(points) else np.zeros(2)
+        return 0.0, float(np.hypot(*span)), 0.0
+    h = points[hull.vertices]
+    edges = np.roll(h, -1, axis=0) - h
+    normals = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    proj = h @ normals.T  # the narrowest caliper lies flush with an edge
+    feret_min = float((proj.max(axis=0) - proj.min(axis=0)).min())
+    d = h[:, None, :] - h[None, :, :]
+    feret_max = float(np.sqrt((d**2).sum(-1)).max())
+    return feret_min, feret_max, float(hull.volume)  # a 2-D hull's "volume" is its area
+
+
+def footprints(vertices: np.ndarray, vert_offsets: np.ndarray, quat_xyzw: np.ndarray) -> dict[str, np.ndarray]:
+    """Min and max Feret diameter and equivalent-circle diameter of each particle's silhouette on
+    the table (seen straight down, orthographic), from its vertices and settled orientation."""
+    rot = quat_matrices(quat_xyzw)
+    n = len(rot)
+    out = {k: np.zeros(n) for k in ("feret_min_mm", "feret_max_mm", "ecd_mm")}
+    for i in range(n):
+        v = np.asarray(vertices[vert_offsets[i]:vert_offsets[i + 1]], dtype=float)
+        xy = (v @ rot[i].T)[:, :2]
+        fmin, fmax, area = polygon_measures(xy)
+        out["feret_min_mm"][i], out["feret_max_mm"][i] = fmin, fmax
+        out["ecd_mm"][i] = np.sqrt(4.0 * area / np.pi)
+    return out
