@@ -72,16 +72,19 @@ CUBE_AXES = _CUBE / np.linalg.norm(_CUBE, axis=1, keepdims=True)  # 26 rotation 
 FACE_AXES = np.concatenate([np.eye(3), -np.eye(3)])
 
 
-def _search(verts: np.ndarray, frames: np.ndarray, objective, step0: float, keep: int = 2,
-            prune_after: int = 4, max_iter: int = 100, n_random: int = 8,
-            min_step: float = MIN_STEP_RAD, seed: int = 0, fixed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _search(verts: np.ndarray, frames: np.ndarray, objective, step0: float, keep: int = 2, prune_after: int = 4,
+            max_iter: int = 100, n_random: int = 8, min_step: float = MIN_STEP_RAD, seed: int = 0,
+            fixed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Minimise `objective` over each particle's frame by a pattern search from S starting frames
-    (N, S, 3, 3); after `prune_after` rounds only the `keep` best starts of each particle go on.
+    (N, S, 3, 3): each round tries turning every frame by its step about the `fixed` axes and
+    `n_random` random ones, keeps the best if it is better and halves the step if not; after
+    `prune_after` rounds only the `keep` best starts of each particle go on. The search runs in
+    float32 (twice as fast); the best frame is made orthonormal and measured again in float64.
     → (best value (N,), best frame (N, 3, 3))."""
     rng = np.random.default_rng([SEARCH_SEED, seed])
     n = len(verts)
     exact = verts
-    verts, frames = verts.astype(np.float32), frames.astype(np.float32)  # twice as fast; the result is re-measured in float64
+    verts, frames = verts.astype(np.float32), frames.astype(np.float32)
     val = objective(verts, frames)
     step = np.full(val.shape, step0)
     fixed = FACE_AXES if fixed is None else fixed
@@ -100,9 +103,8 @@ def _search(verts: np.ndarray, frames: np.ndarray, objective, step0: float, keep
         rand = rng.normal(size=(n_random, 3))
         axes = np.concatenate([fixed, rand / np.linalg.norm(rand, axis=1, keepdims=True)]).astype(np.float32)
         c = len(axes)
-        # rotate each frame about one of its own axes: R_cand = frame^T-coords rotation applied on the left
         rot = _rodrigues(np.broadcast_to(axes, st.shape + (c, 3)), st[..., None].astype(np.float32))  # (A, S, C, 3, 3)
-        cand = rot @ fr[:, :, None]  # rows of the frame mixed: a rotation in the frame's own coordinates
+        cand = rot @ fr[:, :, None]  # the frame's rows mixed: a turn about an axis in the frame's own coordinates
         a, s_ = cand.shape[:2]
         cv = objective(verts[active], cand.reshape(a, s_ * c, 3, 3)).reshape(a, s_, c)
         best = cv.argmin(axis=2)
