@@ -48,7 +48,8 @@ def test_a_magnified_image_shows_the_scene_rendered_at_that_scale(tmp_path):
     pos, quat, _ = load_poses(d)
     s = 2.0
     big = dataclasses.replace(geo, vertices=geo.vertices * s, size_mm=geo.size_mm * s,
-                              volume_mm3=geo.volume_mm3 * s**3, dims_mm=geo.dims_mm * s)
+                              volume_mm3=geo.volume_mm3 * s**3, dims_mm=geo.dims_mm * s, sieve_mm=geo.sieve_mm * s)
+    assert read_json(d / "labels.json")["size_definition"] == "sieve"  # the default: labels of the sieve size
     _, mask_big, _ = render_scene(spec, big, pos * s, quat, RenderParams.from_dict(psd_config.render_params(cfg)),
                                   spec["entropy"])
     mask = read_png(d / "mask.png")
@@ -60,12 +61,12 @@ def test_a_magnified_image_shows_the_scene_rendered_at_that_scale(tmp_path):
     labels = read_json(d / "labels.json")
     from psdfactory.psd import weighted_percentiles
 
-    assert weighted_percentiles(big.size_mm, None) == pytest.approx(s * np.array(
+    assert weighted_percentiles(big.sieve_mm, None) == pytest.approx(s * np.array(
         [labels["d10_mm"], labels["d50_mm"], labels["d90_mm"]]))
     # the augmentation, given the whole image and s = 2, crops a window of n/2 and doubles the labels
     x = to_input(read_png(d / "image.png"), None)[None]
     _, y2 = rescale(x, torch.tensor([[labels["d10_mm"], labels["d50_mm"], labels["d90_mm"]]]), (2.0, 2.0), _gen())
-    assert y2[0].numpy() == pytest.approx(weighted_percentiles(big.size_mm, None), rel=1e-6)
+    assert y2[0].numpy() == pytest.approx(weighted_percentiles(big.sieve_mm, None), rel=1e-6)
 
 
 def test_photometric_changes_colours_not_geometry():

@@ -11,6 +11,7 @@ import traceback
 from pathlib import Path
 
 from . import PsdError, __version__
+from .psd import SIZE_DEFINITIONS
 
 logger = logging.getLogger(__name__)
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -144,7 +145,8 @@ def cmd_predict(a: argparse.Namespace) -> int:
         n, failed = stream_predictions(Path(a.model), a.images, out, a.mm_per_px, device=a.device, resume=a.resume,
                                        emit=emit, overlay_dir=Path(a.overlay) if a.overlay else None,
                                        masks_dir=Path(a.masks) if a.masks else None,
-                                       particles_out=Path(a.particles) if a.particles else None)
+                                       particles_out=Path(a.particles) if a.particles else None,
+                                       size_definition=a.size_definition)
     except KeyboardInterrupt:
         if out is not None:
             logger.error(f"psdfactory predict: interrupted; the rows done so far are in {partial_path(out)} "
@@ -285,6 +287,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "DIR/<image stem>.png (16-bit, 0 = background, k = one particle)")
     p.add_argument("--particles", metavar="FILE", help="instance models: write every measured particle to this CSV "
                    "(image, id, area_mm2, sieve_size_mm, volume_mm3, touches_edge)")
+    p.add_argument("--size-definition", choices=SIZE_DEFINITIONS, metavar="NAME",
+                   help="what d10/d50/d90 are of: " + ", ".join(SIZE_DEFINITIONS) + " (default: the definition "
+                   "the model was trained on, in the CSV's size_definition column). An instance model also "
+                   "estimates the other solid definitions (sieve, b-axis, c-axis, esd) and measures feret-min, "
+                   "feret-max and ecd on the whole grains it finds; a CNN reads only its own")
     p.add_argument("images", nargs="+", help="image files and/or folders of images")
     p.set_defaults(func=cmd_predict)
 

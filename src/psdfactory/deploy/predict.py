@@ -20,7 +20,7 @@ from .. import PsdError
 from ..io import read_photo, write_json
 from ..learn.data import normalise, to_input
 from ..learn.models import main_output
-from ..psd import TARGETS
+from ..psd import FOOTPRINT_DEFINITIONS, SIZE_DEFINITIONS, TARGETS, weighted_percentiles
 
 logger = logging.getLogger(__name__)
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
@@ -117,7 +117,32 @@ def load_predictor(model_path: Path, device: str = "cpu"):
     return run, meta
 
 
-COLUMNS = ["image", *TARGETS, "error"]
+COLUMNS = ["image", *TARGETS, "size_definition", "weighting", "error"]
+LEGACY_DEFINITION = "b-axis"  # a model trained before sizes had names learnt the drawn size, the b-axis
+
+
+def model_definition(meta: dict) -> str:
+    """The size definition a model's training labels were of."""
+    return meta.get("size_definition", LEGACY_DEFINITION)
+
+
+def reading(meta: dict, requested: str | None) -> dict:
+    """What predict's d-values will be of: {"size_definition", "weighting"}. A model reads the
+    definition it was trained on; an instance model also estimates the other solid definitions it
+    has a read-out for, and measures the footprint ones (feret-min, feret-max, ecd) on the grains
+    it finds. Anything else is refused, naming what the model can read."""
+    own, weighting = model_definition(meta), meta.get("weighting", "number")
+    definition = requested or own
+    if definition not in SIZE_DEFINITIONS:
+        raise PsdError(f"--size-definition {definition!r}: not a size definition; one of {', '.join(SIZE_DEFINITIONS)}")
+    can = {own}
+    if meta.get("arch") == "instances":
+        can |= set(meta.get("readouts") or {}) | set(FOOTPRINT_DEFINITIONS)
+    if definition not in can:
+        raise PsdError(f"--size-definition {definition}: this {meta.get('arch')} model reads "
+                       f"{', '.join(d for d in SIZE_DEFINITIONS if d in can)} (trained on {own} labels); train one "
+                       f"with labels.size_definition: {definition} to read {definition}")
+    return {"size_definition": definition, "weighting": weighting}
 
 
 def describe_model(meta: dict, model_path: Path, mm_per_px: float | None) -> list[str]:
@@ -129,63 +154,69 @@ def describe_model(meta: dict, model_path: Path, mm_per_px: float | None) -> lis
     return lines
 
 
-def predict_one(run, meta: dict, path: Path, mm_per_px: float | None, instance: InstanceOutputs | None = None) -> dict:
+def predict_one(run, meta: dict, path: Path, mm_per_px: float | None, instance: InstanceOutputs | None = None,
+                what: dict | None = None) -> dict:
     """One image → its row; a bad image gives a row whose `error` names the file and the reason.
     With an instance model (`instance`), the calibrated d-values of the particles it measured,
-    and its overlay, mask and particle rows written."""
+    and its overlay, mask and particle rows written. `what`: the reading (``reading``)."""
+    what = what or reading(meta, None)
     try:
         image, size_hw = read_photo(path, need=lambda h, w: target_size(h, w, meta, mm_per_px))
         if instance is not None:
-            d = instance.predict(path, image, size_hw, prepare(image, meta, mm_per_px, size_hw))
-            return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, "error": ""}
-        d = run(normalise(prepare(image, meta, mm_per_px, size_hw)))[0]
-        return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, "error": ""}
+            d = instance.predict(path, image, size_hw, prepare(image, meta, mm_per_px, size_hw), what)
+        else:
+            d = run(normalise(prepare(image, meta, mm_per_px, size_hw)))[0]
+        return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, **what, "error": ""}
     except PsdError as e:
         error = str(e)
     except MemoryError:
         error = f"{path}: out of memory while predicting"
     except Exception as e:  # one image must not stop the others: its row says what went wrong
         error = f"{path}: {type(e).__name__}: {e}"
-    return {"image": str(path), **dict.fromkeys(TARGETS), "error": error}
+    return {"image": str(path), **dict.fromkeys(TARGETS), **what, "error": error}
 
 
 def predict_rows(run, meta: dict, files: list[Path], mm_per_px: float | None = None,
-                 done: dict[str, dict] | None = None,
-                 instance: InstanceOutputs | None = None) -> Iterator[tuple[dict, bool]]:
+                 done: dict[str, dict] | None = None, instance: InstanceOutputs | None = None,
+                 what: dict | None = None) -> Iterator[tuple[dict, bool]]:
     """(row, predicted now) per file, in order, one image in memory at a time; the rows of
-    `done` (keyed by image_key) are given back as they are, not predicted again."""
+    `done` (keyed by image_key; of the same reading) are given back as they are, not predicted again."""
     done = done or {}
     if instance is not None:
         instance.name_outputs(files)
     for f in files:
         old = done.get(image_key(f))
-        yield ({**old, "image": str(f)}, False) if old else (predict_one(run, meta, f, mm_per_px, instance), True)
+        yield ({**old, "image": str(f)}, False) if old else (predict_one(run, meta, f, mm_per_px, instance, what), True)
 
 
-def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, device: str, outputs: dict | None = None):
-    """The model (its runner and meta, described in the log) and the image files to predict.
-    `outputs`: an instance model's --overlay / --masks / --particles (refused for the others)."""
+def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, device: str, outputs: dict | None = None,
+                size_definition: str | None = None):
+    """The model (its runner and meta, described in the log), the image files to predict and what
+    the d-values will be of (``reading``). `outputs`: an instance model's --overlay / --masks /
+    --particles (refused for the others)."""
     run, meta = load_predictor(model_path, device)
     if meta["arch"] != "instances" and any((outputs or {}).values()):
         raise PsdError(f"--overlay, --masks and --particles need an instance model (arch 'instances'); {meta['arch']} "
                        "reads d10/d50/d90 straight off the image and measures no particle")
+    what = reading(meta, size_definition)
     for line in describe_model(meta, model_path, mm_per_px):
         logger.info(line)
+    logger.info(f"d10/d50/d90 of the particles' {what['size_definition']} size, {what['weighting']}-weighted")
     files = expand_inputs(inputs)
     if not files:
         raise PsdError("no image files given")
-    return run, meta, files
+    return run, meta, files, what
 
 
 def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None, device: str = "cpu",
                   overlay_dir: Path | None = None, masks_dir: Path | None = None,
-                  particles_out: Path | None = None) -> list[dict]:
+                  particles_out: Path | None = None, size_definition: str | None = None) -> list[dict]:
     """One row per image. An instance model can also write each image's overlay and instance
     mask and a table of every measured particle (`InstanceOutputs`)."""
     outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
-    run, meta, files = open_inputs(model_path, inputs, mm_per_px, device, outputs)
+    run, meta, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition)
     instance = InstanceOutputs(run, meta, **outputs) if meta["arch"] == "instances" else None
-    rows = [row for row, _ in predict_rows(run, meta, files, mm_per_px, instance=instance)]
+    rows = [row for row, _ in predict_rows(run, meta, files, mm_per_px, instance=instance, what=what)]
     if instance is not None:
         instance.finish()
     return rows
@@ -217,7 +248,8 @@ def _row_from_text(r: dict) -> dict | None:
         return None
     if not r["error"] and None in nums.values():
         return None
-    return {"image": r["image"], **nums, "error": r["error"] or ""}
+    return {"image": r["image"], **nums, "size_definition": r["size_definition"], "weighting": r["weighting"],
+            "error": r["error"] or ""}
 
 
 def read_rows(path: Path) -> list[dict]:
@@ -318,14 +350,15 @@ class Progress:
 def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = None, mm_per_px: float | None = None,
                        device: str = "cpu", resume: bool = False, emit=None, progress_stream=None,
                        overlay_dir: Path | None = None, masks_dir: Path | None = None,
-                       particles_out: Path | None = None) -> tuple[int, int]:
+                       particles_out: Path | None = None, size_definition: str | None = None) -> tuple[int, int]:
     """`psdfactory predict`: each image read, predicted and written (to `emit` and to `out`'s
     partial file) before the next is read, so memory stays flat and an interrupted run keeps
     what it did; `out` appears only when every image is done. → (images, failed). An instance
     model can also write overlays, masks and the particle table (`InstanceOutputs`)."""
     outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
-    run, meta, files = open_inputs(model_path, inputs, mm_per_px, device, outputs)
+    run, meta, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition)
     done = done_rows(out) if (resume and out is not None) else {}
+    done = {k: r for k, r in done.items() if all(r.get(c) == what[c] for c in what)}  # rows of another reading: again
     instance = InstanceOutputs(run, meta, **outputs, keep=done) if meta["arch"] == "instances" else None
     if resume and out is None:
         logger.warning("--resume needs --out: nothing to resume from")
@@ -336,7 +369,7 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
     progress = Progress(len(files), progress_stream, enabled=logger.isEnabledFor(logging.INFO))  # not with -q
     failed = 0
     try:
-        for row, predicted in predict_rows(run, meta, files, mm_per_px, done, instance):
+        for row, predicted in predict_rows(run, meta, files, mm_per_px, done, instance, what):
             failed += bool(row["error"])
             if writer is not None:
                 writer.write(row)
@@ -411,8 +444,10 @@ class InstanceOutputs:
             taken.add(name)
             self.names[f] = name
 
-    def predict(self, path: Path, image: np.ndarray, size_hw: tuple[int, int], x: torch.Tensor) -> np.ndarray:
-        """The calibrated d10/d50/d90 of one image (`x`: it at the network's scale), and its files."""
+    def predict(self, path: Path, image: np.ndarray, size_hw: tuple[int, int], x: torch.Tensor,
+                what: dict | None = None) -> np.ndarray:
+        """The calibrated d10/d50/d90 of one image (`x`: it at the network's scale) in the reading
+        `what` (the model's own by default), and its files."""
         from ..io import write_png
         from ..learn.instances import resize_mask
         from ..learn.particles import draw_overlay
@@ -433,7 +468,25 @@ class InstanceOutputs:
             self.n_particles += len(m)
         raw = ", ".join(f"{v:.3f}" for v in res.raw)
         logger.debug(f"{path}: {len(m)} particles ({int((~m.touches_edge).sum())} off the edge), raw d10/d50/d90 {raw} mm")
-        return res.calibrated
+        return self.in_definition(res, what or reading(self.meta, None), path)
+
+    def in_definition(self, res, what: dict, path: Path) -> np.ndarray:
+        """d10/d50/d90 in the definition asked: the model's own read-out, another solid
+        definition's read-out, or a footprint definition measured on the whole grains it found."""
+        from ..learn.readout import apply_readout
+
+        definition = what["size_definition"]
+        if definition == model_definition(self.meta):
+            return res.calibrated
+        if definition in FOOTPRINT_DEFINITIONS:
+            m = res.measurements
+            size = {"feret-min": m.min_feret_mm, "feret-max": m.max_feret_mm, "ecd": m.eq_diameter_mm}[definition]
+            whole = ~m.touches_edge
+            if not whole.any():
+                raise PsdError(f"{path}: no whole grain found (every one touches the image's edge): no {definition} "
+                               "to measure")
+            return weighted_percentiles(size[whole], m.volume_mm3[whole] if what["weighting"] == "volume" else None)
+        return apply_readout(self.meta["readouts"][definition], res.stats[None])[0]
 
     def finish(self) -> None:
         if self.writer is not None and not self.file.closed:

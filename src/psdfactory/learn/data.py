@@ -37,6 +37,18 @@ def training_rows(results_root: Path, datasets: tuple[str, ...] | list[str]
     return train, val, rows
 
 
+def label_definition(rows: list[dict]) -> dict[str, str]:
+    """What the scenes' targets d*_mm are of: {"size_definition": ..., "weighting": ...}, the same
+    for every row (a model learns one definition; mixing two would teach it neither)."""
+    kinds = {(r.get("size_definition"), r.get("weighting")) for r in rows}
+    if len(kinds) != 1 or None in next(iter(kinds)):
+        found = ", ".join(sorted(f"{d} ({w})" for d, w in kinds if d)) or "none"
+        raise PsdError(f"the training scenes' labels are not of one size definition and weighting (found: {found}); "
+                       "rerun the label jobs of every training dataset with one labels.size_definition")
+    (definition, weighting), = kinds
+    return {"size_definition": definition, "weighting": weighting}
+
+
 def targets(rows: list[dict]) -> torch.Tensor:
     return torch.tensor([[r[t] for t in TARGETS] for r in rows], dtype=torch.float32).reshape(-1, len(TARGETS))
 

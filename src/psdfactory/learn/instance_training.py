@@ -87,6 +87,22 @@ def pick_postprocess(maps: np.ndarray, masks: list[np.ndarray], grid: dict = POS
     return best, best_f1
 
 
+def other_readouts(stats: np.ndarray, rows: list[dict], features: tuple[str, ...]) -> dict:
+    """Read-outs of the scenes' labels in every other solid size definition (same weighting), from
+    the same instance statistics: the estimator reads its own definition and estimates these."""
+    from ..psd import SOLID_DEFINITIONS, definition_targets
+    from .data import label_definition
+
+    own = label_definition(rows)
+    out = {}
+    for d in SOLID_DEFINITIONS:
+        cols = definition_targets(d, own["weighting"])
+        y = np.array([[r.get(c, np.nan) for c in cols] for r in rows], dtype=float)
+        if d != own["size_definition"] and np.isfinite(y).all():
+            out[d] = fit_readout(stats, y, features=features)
+    return out
+
+
 def train_instances(params, settings: InstanceSettings, results_root: Path, out_dir: Path) -> dict:
     """Train the instance estimator (`params`: learn.train.TrainParams with arch 'instances') on
     a dataset's train split, select by validation loss, pick the post-processing on the
@@ -95,7 +111,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     from tqdm import tqdm
 
     from .augment import photometric
-    from .data import normalise, training_rows
+    from .data import label_definition, normalise, training_rows
     from .data import targets as label_targets
     from .models import count_parameters
     from .runtime import LrSchedule, optimise_step, pick_device, save_model, training_precision
@@ -196,6 +212,8 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
                           features=READOUTS[settings.readout])
     from .metrics import regression_metrics
 
+    readouts = other_readouts(np.stack([r.stats for r in train_res + val_res]), train_rows + val_rows,
+                              READOUTS[settings.readout])
     val_cal = regression_metrics(y_val, apply_readout(readout, np.stack([r.stats for r in val_res])))
     val_raw = regression_metrics(y_val, np.nan_to_num(np.stack([r.raw for r in val_res])))
     history[-1]["val_mae_mm"] = val_cal["overall"]["mae"]
@@ -218,7 +236,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         "image_resolution": res,
         "mm_per_px": mm,
         "targets": list(TARGETS),
-        "weighting": "number",
+        **label_definition(train_rows + val_rows),
         "weights": weights_used,
         "maps": list(MAPS),
         "postprocess": post,
@@ -226,6 +244,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         "readout_features": settings.readout,
         "tta": settings.tta,
         "readout": readout,
+        "readouts": readouts,  # the other solid size definitions (predict --size-definition)
         "boundary_pos_weight": pw,
         # the validation scenes are in the read-out's fit: its out-of-fold R² is the honest figure
         "val": {"f1": val_f1, "r2_readout_cv": readout["cv_r2"],

@@ -51,7 +51,7 @@ from torch.nn import functional as F
 
 from .. import PsdError
 from ..io import read_png
-from ..psd import TARGETS
+from ..psd import SOLID_DEFINITIONS, TARGETS
 from .particles import (
     DEFAULT_SIEVE_METHOD,
     MAP_READOUT_FEATURES,
@@ -567,23 +567,34 @@ def readout_problems(meta: dict) -> list[str]:
         problems.append(f"sieve_method must be one of {', '.join(SIEVE_METHODS)}")
     elif meta["sieve_method"] == "size_map" and (not isinstance(maps, list) or "size" not in maps):
         problems.append("sieve_method 'size_map' needs a network that predicts the size map")
-    ro = meta.get("readout")
-    if ro is not None:
-        feats = ro.get("features") if isinstance(ro, dict) else None
-        if not (isinstance(feats, list) and feats and all(f in STAT_NAMES for f in feats)):
-            problems.append(f"readout.features must name instance statistics ({', '.join(STAT_NAMES)}); "
-                            "a model from an older psdfactory: train it again")
-        elif any(f.startswith("map_") for f in feats) and (not isinstance(maps, list) or "size" not in maps):
-            problems.append("readout.features read the size map, which this network does not predict")
-        else:
-            nf = len(feats)
-            ok = (all(nums(ro.get(k), nf) for k in ("impute", "mean", "scale"))
-                  and isinstance(ro.get("weights"), list) and len(ro["weights"]) == nf + 1
-                  and all(nums(w, 3) for w in ro["weights"]))
-            if not ok:
-                problems.append(f"readout must hold impute/mean/scale ({nf} numbers each) and weights "
-                                f"({nf + 1} × 3)")
+    for name, ro in [("readout", meta.get("readout")), *((f"readouts.{k}", v) for k, v in _readouts(meta))]:
+        if ro is not None:
+            problems += _one_readout_problems(name, ro, maps, nums)
+    if not isinstance(meta.get("readouts", {}), dict):
+        problems.append("readouts must map solid size definitions to read-outs")
+    else:
+        problems += [f"readouts.{k}: not a solid size definition ({', '.join(SOLID_DEFINITIONS)})"
+                     for k in meta.get("readouts", {}) if k not in SOLID_DEFINITIONS]
     return problems
+
+
+def _readouts(meta: dict) -> list[tuple[str, object]]:
+    ro = meta.get("readouts")
+    return list(ro.items()) if isinstance(ro, dict) else []
+
+
+def _one_readout_problems(name: str, ro: object, maps: object, nums) -> list[str]:
+    feats = ro.get("features") if isinstance(ro, dict) else None
+    if not (isinstance(feats, list) and feats and all(f in STAT_NAMES for f in feats)):
+        return [f"{name}.features must name instance statistics ({', '.join(STAT_NAMES)}); "
+                "a model from an older psdfactory: train it again"]
+    if any(f.startswith("map_") for f in feats) and (not isinstance(maps, list) or "size" not in maps):
+        return [f"{name}.features read the size map, which this network does not predict"]
+    nf = len(feats)
+    ok = (all(nums(ro.get(k), nf) for k in ("impute", "mean", "scale"))
+          and isinstance(ro.get("weights"), list) and len(ro["weights"]) == nf + 1
+          and all(nums(w, 3) for w in ro["weights"]))
+    return [] if ok else [f"{name} must hold impute/mean/scale ({nf} numbers each) and weights ({nf + 1} × 3)"]
 
 
 def resize_mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

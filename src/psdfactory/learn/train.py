@@ -25,7 +25,7 @@ from ..config import config_fields
 from ..io import atomic_path
 from ..psd import TARGETS
 from .augment import augment_d4, photometric, rescale
-from .data import SceneImages, normalise, training_rows
+from .data import SceneImages, label_definition, normalise, training_rows
 from .models import TargetStats, build_model, count_parameters, inception_aux_fits, input_size
 from .runtime import (
     LrSchedule,
@@ -244,7 +244,7 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, instances: dic
         "input_size": size,
         "target_stats": asdict(stats),
         "targets": list(TARGETS),
-        "weighting": "number",
+        **label_definition(train_rows + val_rows),
         "mm_per_px": float(np.median([r["mm_per_px"] for r in train_rows])),
         "image_resolution": int(np.median([r["resolution"] for r in train_rows])),
         "weights": weights_used,

@@ -44,3 +44,16 @@ class Geometry:
         v = self.vertices[self.vert_offsets[i] : self.vert_offsets[i + 1]].astype(np.float64)
         f = self.faces[self.face_offsets[i] : self.face_offsets[i + 1]]
         return v, f
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """(N, 4) unit quaternions x, y, z, w (pybullet's order) → (N, 3, 3) rotation matrices."""
+    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=1,
+    )

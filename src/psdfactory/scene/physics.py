@@ -16,7 +16,7 @@ import numpy as np
 from .. import PsdError
 from ..config import config_fields
 from ..seeding import rng_for
-from .geometry import CM, Geometry
+from .geometry import CM, Geometry, quat_to_matrix
 
 logger = logging.getLogger(__name__)
 GROUP_ACTIVE, GROUP_FROZEN, GROUP_WALLS = 1, 2, 4
@@ -78,19 +78,6 @@ def random_quaternions(rng: np.random.Generator, n: int) -> np.ndarray:
     """Uniform random rotations (x, y, z, w)."""
     q = rng.normal(size=(n, 4))
     return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(N, 4) x,y,z,w → (N, 3, 3) rotation matrices."""
-    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
 
 
 def posed_vertices(geometry: Geometry, i: int, pos: np.ndarray, rot: np.ndarray) -> np.ndarray:

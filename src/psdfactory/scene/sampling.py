@@ -122,6 +122,13 @@ def drop_positions(
     return out
 
 
+def circumradii(vertices: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Each particle's largest vertex distance from its centre of volume: the radius it never
+    reaches beyond in the x-y plane, however it lands."""
+    r = np.linalg.norm(np.asarray(vertices, dtype=float), axis=1)
+    return np.maximum.reduceat(r, offsets[:-1]) if len(offsets) > 1 else np.zeros(0)
+
+
 def sample_scene(p: SampleParams) -> tuple[dict, dict[str, np.ndarray]]:
     """The scene spec (paper metadata + provenance) and its packed particle meshes."""
     entropy = scene_entropy(p.seed, p.dataset, p.index)
@@ -137,7 +144,7 @@ def sample_scene(p: SampleParams) -> tuple[dict, dict[str, np.ndarray]]:
     geometry = pack(particles)
     xy = drop_positions(
         rng,
-        footprint_r=geometry["dims_mm"][:, 0] / 2,
+        footprint_r=circumradii(geometry["vertices"], geometry["vert_offsets"]),
         volumes=geometry["volume_mm3"],
         table_size=p.table_size,
         candidates=p.placement_candidates,

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .geometry import quat_to_matrix
+
 SEARCH_SEED = 20240601  # fixed: the search's random axes never change a label between runs
 MIN_STEP_RAD = 2e-4  # the search stops refining a frame below this rotation (~0.01 % of a width)
 
@@ -230,18 +232,6 @@ def solid_sizes(vertices: np.ndarray, vert_offsets: np.ndarray, volume_mm3: np.n
 
 # ---- footprints: the resting particle seen from above -----------------------------------------
 
-def quat_matrices(quat_xyzw: np.ndarray) -> np.ndarray:
-    """(N, 4) unit quaternions (x, y, z, w; pybullet's order) → (N, 3, 3) rotation matrices."""
-    q = np.asarray(quat_xyzw, dtype=float)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    x, y, z, w = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
-
-
 def polygon_measures(points: np.ndarray) -> tuple[float, float, float]:
     """(feret_min, feret_max, area) of the convex hull of 2-D points (M, 2)."""
     from scipy.spatial import ConvexHull, QhullError
@@ -265,7 +255,8 @@ def polygon_measures(points: np.ndarray) -> tuple[float, float, float]:
 def footprints(vertices: np.ndarray, vert_offsets: np.ndarray, quat_xyzw: np.ndarray) -> dict[str, np.ndarray]:
     """Min and max Feret diameter and equivalent-circle diameter of each particle's silhouette on
     the table (seen straight down, orthographic), from its vertices and settled orientation."""
-    rot = quat_matrices(quat_xyzw)
+    q = np.asarray(quat_xyzw, dtype=float)
+    rot = quat_to_matrix(q / np.linalg.norm(q, axis=1, keepdims=True))
     n = len(rot)
     out = {k: np.zeros(n) for k in ("feret_min_mm", "feret_max_mm", "ecd_mm")}
     for i in range(n):
