@@ -384,7 +384,8 @@ def test_predict_writes_overlays_masks_and_particles(tiny, tmp_path, capsys):
     with open(tmp_path / "p.csv") as f:
         rows = list(csv.DictReader(f))
     assert [r["image"].split("/")[-2] for r in rows] == ["tiny-000000", "tiny-000001"]
-    assert list(rows[0]) == ["image", "d10_mm", "d50_mm", "d90_mm", "error"]  # the CNNs' columns
+    assert list(rows[0]) == ["image", "d10_mm", "d50_mm", "d90_mm", "size_definition", "weighting", "error"]
+    assert {(r["size_definition"], r["weighting"]) for r in rows} == {("sieve", "number")}  # the labels' definition
     assert all(float(r["d10_mm"]) <= float(r["d50_mm"]) <= float(r["d90_mm"]) for r in rows)
     with open(tmp_path / "particles.csv") as f:
         parts = list(csv.DictReader(f))
@@ -410,6 +411,48 @@ def test_predict_writes_overlays_masks_and_particles(tiny, tmp_path, capsys):
                  str(big)]) == 0
     with Image.open(tmp_path / "m2" / "big.png") as im:
         assert im.size == (96, 96)
+
+
+def test_predict_reads_every_size_definition(tiny, tmp_path):
+    """The model reads its own definition (sieve), estimates the other solid ones with their own
+    read-outs, and measures the footprint ones on the whole grains it finds."""
+    from psdfactory import PsdError
+    from psdfactory.deploy.predict import predict_files
+    from psdfactory.psd import SIZE_DEFINITIONS, SOLID_DEFINITIONS, TARGETS, weighted_percentiles
+
+    root, model_path, _ = tiny
+    meta = torch.load(model_path, map_location="cpu", weights_only=True)["meta"]
+    assert meta["size_definition"] == "sieve" and meta["weighting"] == "number"
+    assert set(meta["readouts"]) == set(SOLID_DEFINITIONS) - {"sieve"}
+    img = root / "tiny" / "scenes" / "tiny-000000" / "image.png"
+    rows = {d: predict_files(model_path, [img], size_definition=d)[0] for d in SOLID_DEFINITIONS}
+    for d, r in rows.items():
+        assert r["error"] == "" and r["size_definition"] == d, (d, r)
+        assert r["d10_mm"] <= r["d50_mm"] <= r["d90_mm"], d
+    # another definition's read-out differs from the model's own: it is fitted to other labels
+    assert [rows["esd"][t] for t in TARGETS] != [rows["sieve"][t] for t in TARGETS]
+    # the footprint definitions are measured on the whole grains found (this one-epoch network
+    # finds few, so on a mask made here): a 6 × 2 px and a 4 × 4 px grain, and one on the edge
+    from types import SimpleNamespace
+
+    from psdfactory.deploy.predict import InstanceOutputs
+    from psdfactory.learn.particles import measure_instances
+
+    mask = np.zeros((12, 12), np.int32)
+    mask[2:4, 2:8], mask[6:10, 6:10], mask[0:3, 10:12] = 1, 2, 3
+    res = SimpleNamespace(measurements=measure_instances(mask, 0.5), calibrated=np.array([1.0, 2.0, 3.0]))
+    out = InstanceOutputs(lambda x: None, meta)
+    got = {d: out.in_definition(res, {"size_definition": d, "weighting": "number"}, img) for d in SIZE_DEFINITIONS
+           if d in ("feret-min", "feret-max", "ecd", "sieve")}
+    np.testing.assert_array_equal(got["sieve"], [1.0, 2.0, 3.0])  # the model's own: its calibrated read-out
+    m = res.measurements  # grain 3 touches the edge: left out
+    for d, col in (("feret-min", m.min_feret_mm), ("feret-max", m.max_feret_mm), ("ecd", m.eq_diameter_mm)):
+        np.testing.assert_allclose(got[d], weighted_percentiles(col[:2], None))
+    assert got["feret-min"][1] < got["ecd"][1] < got["feret-max"][1]
+    mask[mask != 3] = 0
+    with pytest.raises(PsdError, match="no whole grain found"):
+        out.in_definition(SimpleNamespace(measurements=measure_instances(mask, 0.5)),
+                          {"size_definition": "ecd", "weighting": "number"}, img)
 
 
 def test_evaluate_writes_segmentation_and_size_figures(tiny, tmp_path):

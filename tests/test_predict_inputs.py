@@ -340,3 +340,28 @@ def test_progress_line():
     for _ in range(3):
         p.update(False, True)
     assert s.getvalue().count("\n") == 1 and "3/3 images" in s.getvalue()  # not a tty: whole lines, the last always
+
+
+def test_a_model_reads_the_size_definitions_it_can_and_refuses_the_others():
+    from psdfactory import PsdError
+    from psdfactory.deploy.predict import reading
+
+    cnn = {"arch": "resnet50", "size_definition": "sieve", "weighting": "number"}
+    assert reading(cnn, None) == {"size_definition": "sieve", "weighting": "number"}
+    refusal = r"reads sieve \(trained on sieve labels\); train one with labels.size_definition: esd"
+    with pytest.raises(PsdError, match=refusal):
+        reading(cnn, "esd")
+    inst = {"arch": "instances", "size_definition": "sieve", "weighting": "volume", "readouts": {"esd": {}}}
+    assert reading(inst, "esd") == {"size_definition": "esd", "weighting": "volume"}
+    assert reading(inst, "feret-max")["size_definition"] == "feret-max"  # measured on the grains it finds
+    with pytest.raises(PsdError, match="reads sieve, esd, feret-min, feret-max, ecd"):
+        reading(inst, "c-axis")  # no read-out for it
+    assert reading({"arch": "resnet50"}, None)["size_definition"] == "b-axis"  # a model from before names
+
+
+def test_predict_refuses_an_unknown_size_definition_in_one_line(capsys):
+    from psdfactory.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["predict", "--model", "m.pt", "--size-definition", "diameter", "a.png"])
+    assert e.value.code == 2 and "invalid choice: 'diameter'" in capsys.readouterr().err

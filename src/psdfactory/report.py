@@ -72,11 +72,18 @@ def dataset_tables(manifests: list[Path], datasets: list[str]) -> dict:
     return out
 
 
+def label_kind(table) -> str:
+    """What a dataset's labels d*_mm are of, e.g. 'sieve size, number-weighted'."""
+    kinds = sorted(set(zip(table.column("size_definition").to_pylist(), table.column("weighting").to_pylist(),
+                           strict=True)))
+    return "; ".join(f"{d} size, {w}-weighted" for d, w in kinds)
+
+
 def label_histograms(tables: dict, out: Path) -> None:
     plt = pyplot()
     fig, axes = plt.subplots(2, 3, figsize=(11, 5.5))
     for ds, t in tables.items():
-        for row, suffix, kind in ((0, "_mm", "number-weighted"), (1, "_v_mm", "volume-weighted")):
+        for row, suffix, kind in ((0, "_mm", "the targets"), (1, "_v_mm", "volume-weighted")):
             for j, n in enumerate(NAMES):
                 ax = axes[row, j]
                 ax.hist(np.asarray(t.column(f"{n}{suffix}")), bins=20, alpha=0.6, label=ds)
@@ -151,20 +158,21 @@ def rerenders_of(config: dict, dataset: str) -> dict[str, str]:
     return out
 
 
-ACCURACY_NOTE = ("Labels are the number-weighted d10/d50/d90 (the paper's), evaluated on each dataset's test "
-                 "split. Per-target R² leads: each is shown with the fraction of the dataset's visible-particle "
-                 "ceiling it reaches — the R² of a cross-validated linear read-out of the labels from the TRUE "
-                 "sizes of the particles visible in the image, i.e. what a perfect measurement of what the camera "
-                 "sees would give. The footprint ceiling is the instance estimator's own read-out fitted to the "
-                 "footprints of the TRUE masks: a perfect segmentation, measured as the estimator measures (a partly "
-                 "hidden grain shows less than its sieve size). Where the generator's μ and σ vary, the sampling "
-                 "ceiling (labels read from μ, σ "
-                 "alone) shows how much a scene's particles scatter around their distribution. A re-render's "
-                 "ceilings are fitted on its source dataset's other scenes (its few scenes would make a "
-                 "cross-validation unstable) and scored on its own, as a model is. A re-render "
-                 "column is the same test scenes rendered by another renderer: how far the model measures "
-                 "particles rather than one renderer's look. 'Overall' pools the three targets as the paper's "
-                 "table 2 does; it reads high for any model that knows d10 < d50 < d90.")
+ACCURACY_NOTE = ('Labels are the d10/d50/d90 of the size definition and weighting the dataset table names '
+                 '(labels.size_definition, labels.weighting; by default the sieve size — the side of the smallest '
+                 "square hole a particle passes — number-weighted as the paper's labels), evaluated on each "
+                 "dataset's test split. Per-target R² leads: each is shown with the fraction of the dataset's "
+                 'visible-particle ceiling it reaches — the R² of a cross-validated linear read-out of the labels '
+                 'from the TRUE sizes of the particles visible in the image, i.e. what a perfect measurement of what'
+                 " the camera sees would give. The footprint ceiling is the instance estimator's own read-out fitted"
+                 ' to the footprints of the TRUE masks: a perfect segmentation, measured as the estimator measures '
+                 "(a partly hidden grain shows less than its sieve size). Where the generator's μ and σ vary, the "
+                 "sampling ceiling (labels read from μ, σ alone) shows how much a scene's particles scatter around "
+                 "their distribution. A re-render's ceilings are fitted on its source dataset's other scenes (its "
+                 'few scenes would make a cross-validation unstable) and scored on its own, as a model is. A '
+                 're-render column is the same test scenes rendered by another renderer: how far the model measures '
+                 "particles rather than one renderer's look. 'Overall' pools the three targets as the paper's table "
+                 '2 does; it reads high for any model that knows d10 < d50 < d90.')
 
 
 def instance_table(metrics: dict[str, dict], datasets: list[str]) -> tuple[list[str], list[list[str]]]:
@@ -279,7 +287,8 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
     figures: list[tuple[Path, str]] = []
     hist_png = fig_dir / "label_histograms.png"
     label_histograms(tables, hist_png)
-    figures.append((hist_png, "Label distributions per dataset"))
+    kinds = "; ".join(sorted({label_kind(t) for t in tables.values()}))
+    figures.append((hist_png, f"Label distributions per dataset (the targets: {kinds}; below, volume-weighted)"))
     for ds, sheet in inputs.contact_sheets.items():
         dst = fig_dir / f"contact_sheet_{ds}.png"
         copy_file(sheet, dst)
@@ -305,14 +314,14 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
         plot_figs += [(scatter, f"{a}: predicted vs true"), (curve, f"{a}: training and validation loss")]
 
     # dataset summary
-    count_head = ["dataset", "scenes", "train", "val", "test", "particles / scene", "mm / px", "shape"]
+    count_head = ["dataset", "scenes", "train", "val", "test", "particles / scene", "mm / px", "shape", "labels of"]
     count_rows = []
     for ds, t in tables.items():
         splits = t.column("split").to_pylist()
         n = np.asarray(t.column("n_particles"))
         count_rows.append([ds, str(t.num_rows), *(str(splits.count(s)) for s in ("train", "val", "test")),
                            f"{n.min()}–{n.max()}", f"{np.median(np.asarray(t.column('mm_per_px'))):.3f}",
-                           ", ".join(sorted(set(t.column("shape_type").to_pylist())))])
+                           ", ".join(sorted(set(t.column("shape_type").to_pylist()))), label_kind(t)])
     weights = [[a, metrics[a]["weights"]] for a in archs]
     fallback = [a for a in archs if "unavailable" in metrics[a]["weights"]]
     warning = (f"ImageNet weights were not available for {', '.join(fallback)}: trained from scratch "
