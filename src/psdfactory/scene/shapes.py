@@ -169,16 +169,11 @@ MAKERS: dict[str, Callable[[np.random.Generator, ShapeParams], Mesh]] = {
 def make_particles(family: str, sizes_mm: np.ndarray, rng: np.random.Generator, params: ShapeParams) -> list[Particle]:
     """One particle per drawn size (its b-axis, mm) with its minimum box and sieve size, measured
     on all the scene's shapes at once (``sizes``)."""
-    from .sizes import minimum_box, pad_vertices, sieve_sizes
+    from .sizes import box_and_sieve
 
     maker = MAKERS[family]
     shapes = [maker(rng, params) for _ in sizes_mm]
-    if not shapes:
-        return []
-    offsets = np.concatenate([[0], np.cumsum([len(v) for v, _ in shapes])])
-    verts = pad_vertices(np.concatenate([v for v, _ in shapes]), offsets)
-    dims, axes = minimum_box(verts)
-    sieve = sieve_sizes(verts, axes)
+    dims, sieve = box_and_sieve([v for v, _ in shapes])
     return [finish(v, f, float(s), d, a) for (v, f), s, d, a in zip(shapes, sizes_mm, dims, sieve, strict=True)]
 
 

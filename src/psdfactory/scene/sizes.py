@@ -154,10 +154,10 @@ def sieve_sizes(verts: np.ndarray, box_axes: np.ndarray | None = None) -> np.nda
     if box_axes is None:
         box_axes = minimum_box(verts)[1]
     frames = np.concatenate([_box_starts(box_axes)[:, :3], _global_starts(verts, keep=6)], axis=1)
-    val, best = _search(verts, frames, _sieve_objective, step0=0.12, keep=2, prune_after=4)
+    val, best = _search(verts, frames, _sieve_objective, step0=0.08, keep=2, prune_after=3, min_step=2e-3)
     # a second search from each particle's best frame, with other random axes and a smaller first
     # step: a pattern search can stop early on the ridge where the two widths are equal
-    val2, _ = _search(verts, best[:, None], _sieve_objective, step0=0.01, keep=1, seed=1, fixed=CUBE_AXES)
+    val2, _ = _search(verts, best[:, None], _sieve_objective, step0=0.01, keep=1, seed=1, fixed=CUBE_AXES, n_random=8)
     return np.minimum(val, val2)
 
 
@@ -222,12 +222,21 @@ def equivalent_sphere_diameter(volume_mm3: np.ndarray) -> np.ndarray:
     return np.cbrt(6.0 * np.asarray(volume_mm3, dtype=float) / np.pi)
 
 
-def solid_sizes(vertices: np.ndarray, vert_offsets: np.ndarray, volume_mm3: np.ndarray) -> dict[str, np.ndarray]:
-    """The pose-free sizes of packed particles: {"dims_mm": (N, 3) box sides a ≥ b ≥ c,
-    "sieve_mm": (N,), "esd_mm": (N,)}."""
-    verts = pad_vertices(vertices, vert_offsets)
-    dims, axes = minimum_box(verts)
-    return {"dims_mm": dims, "sieve_mm": sieve_sizes(verts, axes), "esd_mm": equivalent_sphere_diameter(volume_mm3)}
+def box_and_sieve(meshes: list[np.ndarray], chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """Minimum-box sides (N, 3; a ≥ b ≥ c) and sieve sizes (N,) of particles given as vertex
+    arrays. Particles are measured in chunks of similar vertex counts, so that little of the work
+    goes to padding."""
+    n = len(meshes)
+    dims, sieve = np.zeros((n, 3)), np.zeros(n)
+    counts = np.array([len(m) for m in meshes])
+    order = np.argsort(counts, kind="stable")
+    for lo in range(0, n, chunk):
+        idx = order[lo:lo + chunk]
+        offsets = np.concatenate([[0], np.cumsum(counts[idx])])
+        verts = pad_vertices(np.concatenate([meshes[i] for i in idx]), offsets)
+        dims[idx], axes = minimum_box(verts)
+        sieve[idx] = sieve_sizes(verts, axes)
+    return dims, sieve
 
 
 # ---- footprints: the resting particle seen from above -----------------------------------------
