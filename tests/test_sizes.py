@@ -111,7 +111,7 @@ def test_minimum_box_is_no_larger_than_trimeshs():
                            ShapeParams.for_family("crushed_rock"))
     for p in parts:
         _, extents = trimesh.bounds.oriented_bounds(trimesh.Trimesh(p.vertices, p.faces))
-        assert np.prod(p.dims_mm) <= np.prod(extents) * 1.01
+        assert np.prod(p.dims_mm) <= np.prod(extents) * 1.003  # never worse than its one-face-flush heuristic
         assert p.dims_mm[1] == pytest.approx(10.0)  # the drawn size is the b-axis
         assert p.dims_mm[0] >= p.dims_mm[1] >= p.dims_mm[2] > 0
 

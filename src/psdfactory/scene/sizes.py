@@ -128,9 +128,11 @@ def _pca_frames(verts: np.ndarray) -> np.ndarray:
     return vt
 
 
-def minimum_box(verts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def minimum_box(verts: np.ndarray, widths: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Sides of each particle's minimum-volume bounding box, sorted long → short (N, 3), and the
-    box's axes (N, 3, 3; rows in the same order). verts: (N, V, 3) as ``pad_vertices`` gives."""
+    box's axes (N, 3, 3; rows in the same order). verts: (N, V, 3) as ``pad_vertices`` gives;
+    `widths`: ``grid_widths(verts)`` if already computed. The search starts from the
+    principal axes, turned 45° about each, and the three best frames of the grid."""
     n = len(verts)
     if n == 0:
         return np.zeros((0, 3)), np.zeros((0, 3, 3))
@@ -138,22 +140,28 @@ def minimum_box(verts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     starts = [pca]
     for ax in np.eye(3):  # the PCA frame turned 45° about each of its axes
         starts.append(_rodrigues(ax, np.array(np.pi / 4)) @ pca)
-    frames = np.stack(starts, axis=1)
+    w = grid_widths(verts) if widths is None else widths
+    frames = np.concatenate([np.stack(starts, axis=1), _grid_starts(w, "box", 3)], axis=1)
     _, best = _search(verts, frames, _box_objective, step0=0.25, min_step=2e-3)
     w = _widths(verts, best[:, None], 3)[:, 0]
     order = np.argsort(-w, axis=1)
     return np.take_along_axis(w, order, axis=1), np.take_along_axis(best, order[..., None], axis=1)
 
 
-def sieve_sizes(verts: np.ndarray, box_axes: np.ndarray | None = None) -> np.ndarray:
+def sieve_sizes(verts: np.ndarray, box_axes: np.ndarray | None = None,
+                widths: np.ndarray | None = None) -> np.ndarray:
     """Side of the smallest square hole each particle passes (N,). verts: (N, V, 3);
-    `box_axes`: the minimum boxes' axes (rows long → short; computed when not given)."""
+    `box_axes`: the minimum boxes' axes (rows long → short; computed when not given); `widths`:
+    ``grid_widths(verts)`` if already computed. The search
+    starts from passing along the long axis (hole at 0, 22.5 and 45°) and the six best frames of
+    the grid."""
     n = len(verts)
     if n == 0:
         return np.zeros(0)
+    w = grid_widths(verts) if widths is None else widths
     if box_axes is None:
-        box_axes = minimum_box(verts)[1]
-    frames = np.concatenate([_box_starts(box_axes)[:, :3], _global_starts(verts, keep=6)], axis=1)
+        box_axes = minimum_box(verts, w)[1]
+    frames = np.concatenate([_box_starts(box_axes)[:, :3], _grid_starts(w, "sieve", 6)], axis=1)
     val, best = _search(verts, frames, _sieve_objective, step0=0.08, keep=2, prune_after=3, min_step=2e-3)
     # a second search from each particle's best frame, with other random axes and a smaller first
     # step: a pattern search can stop early on the ridge where the two widths are equal
@@ -198,21 +206,29 @@ def _nearest_direction(dirs: np.ndarray, grid: np.ndarray) -> np.ndarray:
     return np.abs(dirs @ grid.T).argmax(axis=1)
 
 
-GRID_FRAMES = _frame_grid(600, 18)  # 10,800 frames: every particle's sieve search starts from the best few
-GRID_DIRS = _hemisphere(2400)  # the widths the frames are ranked by: each frame's u and v looked up here
-GRID_PAIRS = np.stack([_nearest_direction(GRID_FRAMES[:, 0], GRID_DIRS),
-                       _nearest_direction(GRID_FRAMES[:, 1], GRID_DIRS)], axis=1)
+GRID_FRAMES = _frame_grid(600, 18)  # 10,800 frames: every particle's searches start from the best few
+GRID_DIRS = _hemisphere(2400)  # the widths the frames are ranked by: each frame's axes looked up here
+GRID_AXES = np.stack([_nearest_direction(GRID_FRAMES[:, k], GRID_DIRS) for k in range(3)], axis=1)
 
 
-def _global_starts(verts: np.ndarray, keep: int = 3, chunk: int = 128) -> np.ndarray:
-    """(N, keep, 3, 3): the `keep` frames of GRID_FRAMES with the smallest sieve objective (their
-    widths looked up on GRID_DIRS), per particle."""
+def grid_widths(verts: np.ndarray, chunk: int = 128) -> np.ndarray:
+    """(N, len(GRID_DIRS)) float32: each particle's widths along the grid's directions."""
     dirs = GRID_DIRS.T.astype(np.float32)
-    out = np.empty((len(verts), keep, 3, 3))
+    out = np.empty((len(verts), dirs.shape[1]), np.float32)
     for lo in range(0, len(verts), chunk):
         p = verts[lo:lo + chunk].astype(np.float32) @ dirs  # (n, V, K)
-        w = p.max(axis=1) - p.min(axis=1)
-        obj = np.maximum(w[:, GRID_PAIRS[:, 0]], w[:, GRID_PAIRS[:, 1]])
+        out[lo:lo + chunk] = p.max(axis=1) - p.min(axis=1)
+    return out
+
+
+def _grid_starts(widths: np.ndarray, kind: str, keep: int, chunk: int = 128) -> np.ndarray:
+    """(N, keep, 3, 3): the `keep` frames of GRID_FRAMES with the smallest box volume (`kind`
+    'box') or sieve objective ('sieve'), their widths looked up in `widths`, per particle."""
+    out = np.empty((len(widths), keep, 3, 3))
+    for lo in range(0, len(widths), chunk):
+        w = widths[lo:lo + chunk]
+        u, v = w[:, GRID_AXES[:, 0]], w[:, GRID_AXES[:, 1]]
+        obj = u * v * w[:, GRID_AXES[:, 2]] if kind == "box" else np.maximum(u, v)
         best = np.argpartition(obj, keep, axis=1)[:, :keep]
         out[lo:lo + chunk] = GRID_FRAMES[best]
     return out
@@ -234,8 +250,9 @@ def box_and_sieve(meshes: list[np.ndarray], chunk: int = 256) -> tuple[np.ndarra
         idx = order[lo:lo + chunk]
         offsets = np.concatenate([[0], np.cumsum(counts[idx])])
         verts = pad_vertices(np.concatenate([meshes[i] for i in idx]), offsets)
-        dims[idx], axes = minimum_box(verts)
-        sieve[idx] = sieve_sizes(verts, axes)
+        w = grid_widths(verts)
+        dims[idx], axes = minimum_box(verts, w)
+        sieve[idx] = sieve_sizes(verts, axes, w)
     return dims, sieve
 
 
