@@ -382,7 +382,7 @@ def log_to(path: Path) -> int:
     """Point this process's stdout and stderr (file descriptors 1 and 2, so C libraries' output
     too) at `path`, as the shell's ``> log 2>&1`` would, and return a descriptor of the stderr there
     was before: the console (Snakemake's, a SLURM job's output) that the verdict also goes to."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)  # the umask decides, as for every output
     sys.stdout.flush()
     sys.stderr.flush()
     console = os.dup(2)
