@@ -129,9 +129,51 @@ def cmd_ceiling(a: argparse.Namespace) -> None:
         logger.info(f"{a.dataset}: {c['note']}")
 
 
+MM_PER_PX_RANGE = (1e-4, 1e3)  # what --mm-per-px may be: from a microscope to a drone
+
+
+def mm_per_px_arg(text: str) -> float:
+    """argparse type of --mm-per-px: a finite number within MM_PER_PX_RANGE."""
+    import math
+
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    lo, hi = MM_PER_PX_RANGE
+    if not (math.isfinite(v) and lo <= v <= hi):
+        raise argparse.ArgumentTypeError(f"{text!r}: give the images' scale as a number of mm per pixel from {lo:g} "
+                                         f"to {hi:g} (measure it on a ruler or scale card in the photo)")
+    return v
+
+
+def log_problem(a: argparse.Namespace) -> str | None:
+    """Why --log may not be written: it is one of the command's input or output files."""
+    log = Path(a.log)
+    if log.is_dir():
+        return f"--log {log} is a folder; give a file name"
+    named = [getattr(a, k, None) for k in ("model", "configfile", "config_json", "out", "particles", "html", "md")]
+    named += list(getattr(a, "images", None) or [])
+    for p in filter(None, named):
+        p = Path(p)
+        try:
+            if log.resolve() == p.resolve() or (log.exists() and p.exists() and os.path.samefile(log, p)):
+                return f"--log {log} is also {p}, which the command reads or writes: give the log its own file"
+        except OSError:
+            continue
+    return None
+
+
 def cmd_predict(a: argparse.Namespace) -> int:
-    from .deploy.predict import partial_path, stream_predictions
+    from .deploy.predict import check_outputs, partial_path, stream_predictions
+    from .learn.runtime import pick_device
     from .psd import TARGETS
+
+    paths = {k: Path(v) if v else None for k, v in (("out", a.out), ("masks_dir", a.masks),
+                                                   ("overlay_dir", a.overlay), ("particles_out", a.particles),
+                                                   ("log", a.log))}
+    check_outputs(Path(a.model), a.images, **paths)  # before any work, and before the table's header
+    pick_device(a.device)
 
     def emit(r: dict) -> None:  # the table is the command's output (stdout), a row as soon as it is made
         if r["error"]:
@@ -274,13 +316,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("predict", help="d10/d50/d90 in mm for image files or folders")
     p.add_argument("--model", required=True, help="a model.pt written by training, or an exported .onnx (fp32 or int8)")
-    p.add_argument("--mm-per-px", type=float, help="scale of the images; they are rescaled to the model's scale")
+    p.add_argument("--mm-per-px", type=mm_per_px_arg, metavar="MM",
+                   help="scale of the images in mm per pixel (1e-4 to 1e3); they are rescaled to the model's scale")
     p.add_argument("--out", help="write the predictions to this .csv or .json file (rows go to <out>.partial.csv as "
                    "they come; it becomes <out> when every image is done)")
     p.add_argument("--resume", action="store_true",
                    help="skip the images that already have a prediction in --out or its .partial.csv "
                         "(failed ones are retried)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help="cpu (default), auto, cuda or cuda:N")
     p.add_argument("--overlay", metavar="DIR", help="instance models: write each image with its particles' outlines "
                    "and sizes (mm) drawn on as DIR/<image stem>.png")
     p.add_argument("--masks", metavar="DIR", help="instance models: write each image's instance mask as "
@@ -355,6 +398,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     console = None
     if args.log:
+        problem = log_problem(args)
+        if problem:
+            print(f"psdfactory {args.command}: error: {problem}", file=sys.stderr)
+            return 2
         try:
             console = log_to(Path(args.log))
         except OSError as e:

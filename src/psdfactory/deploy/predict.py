@@ -42,6 +42,66 @@ def expand_inputs(paths: list[str]) -> list[Path]:
     return out
 
 
+def _same(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve() or (a.exists() and b.exists() and os.path.samefile(a, b))
+    except OSError:
+        return False
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    try:
+        return path.resolve().is_relative_to(folder.resolve())
+    except OSError:
+        return False
+
+
+def check_outputs(model: Path, inputs: list[str], out: Path | None = None, masks_dir: Path | None = None,
+                  overlay_dir: Path | None = None, particles_out: Path | None = None,
+                  log: Path | None = None) -> None:
+    """Refuse, before any work, an output that would overwrite or mix with an input: a file output
+    that is the model, an input image or another output, a file output with the wrong suffix or
+    that is a folder, and an output folder that is or lies inside an input folder, holds an input
+    image, or is a file."""
+    model = Path(model)
+    folders = [Path(p) for p in inputs if Path(p).is_dir()]
+    images = [Path(p) for p in inputs if not Path(p).is_dir()]
+    files = {"--out": out, "--particles": particles_out, "--log": log}
+    files = {k: Path(v) for k, v in files.items() if v is not None}
+    dirs = {k: Path(v) for k, v in {"--masks": masks_dir, "--overlay": overlay_dir}.items() if v is not None}
+    for flag, path, suffixes in (("--out", files.get("--out"), (".csv", ".json")),
+                                 ("--particles", files.get("--particles"), (".csv",))):
+        if path is not None and path.suffix.lower() not in suffixes:
+            raise PsdError(f"{flag} {path}: must end in {' or '.join(suffixes)}")
+    for flag, path in files.items():
+        if path.is_dir():
+            raise PsdError(f"{flag} {path} is a folder; give a file name")
+        if _same(path, model) or _same(path, model.with_name("meta.json")):
+            raise PsdError(f"{flag} {path} is the model: choose another file")
+        hit = next((i for i in images if _same(path, i)), None) or next((f for f in folders if _inside(path, f)), None)
+        if hit is not None:
+            raise PsdError(f"{flag} {path} would overwrite or land among the input images ({hit}): choose a file "
+                           "outside them")
+    named = list(files.items()) + list(dirs.items())
+    for i, (f1, p1) in enumerate(named):
+        for f2, p2 in named[i + 1:]:
+            if _same(p1, p2) or (f2 in dirs and _inside(p1, p2)) or (f1 in dirs and _inside(p2, p1)):
+                raise PsdError(f"{f1} {p1} and {f2} {p2} would write over each other: give each its own place")
+    for flag, d in dirs.items():
+        if d.exists() and not d.is_dir():
+            raise PsdError(f"{flag} {d} is a file; give a folder")
+        if _inside(model, d) and _same(model.parent, d):
+            raise PsdError(f"{flag} {d} is the model's folder: choose another folder")
+        hit = next((f for f in folders if _inside(d, f) or _same(d, f)), None)
+        if hit is not None:
+            raise PsdError(f"{flag} {d} is or lies inside the input folder {hit}: its files would be read as "
+                           "photos next time; choose a folder outside it")
+        hit = next((i for i in images if _same(i.parent, d)), None)
+        if hit is not None:
+            raise PsdError(f"{flag} {d} holds the input image {hit}, which a mask or overlay could overwrite; "
+                           "choose another folder")
+
+
 def network_scale(meta: dict) -> float:
     """mm per pixel of the network's input: training images are resized to the input size."""
     return meta["mm_per_px"] * meta["image_resolution"] / meta["input_size"]

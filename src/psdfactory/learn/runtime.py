@@ -20,11 +20,25 @@ logger = logging.getLogger(__name__)
 
 
 def pick_device(name: str) -> torch.device:
+    """`auto`, `cpu`, `cuda`, `cuda:N` or another device PyTorch knows, refused in one line when
+    PyTorch does not know it or this machine does not have it."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise PsdError(f"device {name!r} asked for, but CUDA is not available here")
-    return torch.device(name)
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, ValueError, TypeError):
+        raise PsdError(f"device {name!r} is not one PyTorch knows; use auto, cpu, cuda or cuda:N") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise PsdError(f"device {name!r} asked for, but CUDA is not available here")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise PsdError(f"device {name!r} asked for, but this machine has "
+                           f"{torch.cuda.device_count()} CUDA device(s)")
+    elif dev.type == "mps" and not torch.backends.mps.is_available():
+        raise PsdError(f"device {name!r} asked for, but MPS is not available here")
+    elif dev.type not in ("cpu", "cuda", "mps"):
+        raise PsdError(f"device {name!r}: psdfactory runs on cpu, cuda or mps")
+    return dev
 
 
 def cpu_has_fast_bf16() -> bool:

@@ -1,0 +1,96 @@
+"""predict refuses, before any work and in one line, an output that would overwrite or mix with
+an input (an image, an input folder, the model, another output), and arguments that make no
+sense; every input and the model are byte-identical afterwards. The checks come before the
+model is loaded, so a stand-in model file serves."""
+
+import os
+
+import pytest
+
+from psdfactory.cli import main
+
+
+@pytest.fixture
+def scene(tmp_path):
+    d = tmp_path / "photos"
+    d.mkdir()
+    (d / "a.png").write_bytes(b"\x89PNG not really")
+    (d / "b.jpg").write_bytes(b"\xff\xd8 not really")
+    model = tmp_path / "model.pt"
+    model.write_bytes(b"weights" * 100)
+    return tmp_path, d, model
+
+
+def snapshot(root):
+    return {p: p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+
+def refused(capsys, args, *expect):
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("psdfactory predict: error:"), err
+    for e in expect:
+        assert e in err[0], (e, err[0])
+
+
+@pytest.mark.parametrize("case", ["masks_here", "overlay_twice", "out_is_image", "out_is_model", "out_in_folder",
+                                  "particles_is_out", "masks_in_input_folder", "out_is_folder", "masks_is_file",
+                                  "json_beside_onnx"])
+def test_an_output_that_is_an_input_or_another_output_is_refused(scene, capsys, monkeypatch, case):
+    root, photos, model = scene
+    a, b = str(photos / "a.png"), str(photos / "b.jpg")
+    m = ["predict", "--model", str(model)]
+    onnx = root / "model.onnx"
+    onnx.write_bytes(b"onnx")
+    (root / "meta.json").write_text("{}")
+    (root / "somefile").write_text("x")
+    cases = {
+        "masks_here": ([*m, "--masks", str(photos), a, b], "--masks", "holds the input image"),
+        "overlay_twice": ([*m, "--overlay", str(root / "o"), "--masks", str(root / "o"), a], "write over each other"),
+        "out_is_image": ([*m, "--out", a, a, b], "--out", "must end in .csv or .json"),
+        "out_is_model": (["predict", "--model", str(root / "p.csv"), "--out", str(root / "p.csv"), a], "is the model"),
+        "out_in_folder": ([*m, "--out", str(photos / "p.csv"), str(photos)], "among the input images"),
+        "particles_is_out": ([*m, "--out", str(root / "x.csv"), "--particles", str(root / "x.csv"), a],
+                             "write over each other"),
+        "masks_in_input_folder": ([*m, "--masks", str(photos / "masks"), str(photos)], "inside the input folder"),
+        "out_is_folder": ([*m, "--out", str(root / "d.csv"), a], "is a folder"),
+        "masks_is_file": ([*m, "--masks", str(root / "somefile"), a], "is a file"),
+        "json_beside_onnx": (["predict", "--model", str(onnx), "--out", str(root / "meta.json"), a], "is the model"),
+    }
+    (root / "d.csv").mkdir()
+    args, *expect = cases[case]
+    before = snapshot(root)
+    refused(capsys, args, *expect)
+    assert snapshot(root) == before and not (root / "o").exists() and not (photos / "masks").exists()
+
+
+def test_a_log_over_the_model_or_an_image_is_refused_before_it_is_opened(scene, capsys):
+    root, photos, model = scene
+    before = snapshot(root)
+    for log in (model, photos / "a.png"):
+        assert main(["--log", str(log), "predict", "--model", str(model), str(photos / "a.png")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--log" in err[0] and "give the log its own file" in err[0]
+    assert snapshot(root) == before
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "1e-300", "nan", "inf", "5000", "abc"])
+def test_mm_per_px_must_be_a_finite_scale(scene, capsys, value):
+    root, photos, model = scene
+    with pytest.raises(SystemExit) as e:
+        main(["predict", "--model", str(model), "--mm-per-px", value, str(photos)])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "--mm-per-px" in err and "mm per pixel from 0.0001 to 1000" in err
+
+
+@pytest.mark.parametrize("device,says", [("nonsense", "not one PyTorch knows"), ("cuda:7", "CUDA"),
+                                         ("xla", "runs on cpu, cuda or mps")])
+def test_a_device_this_machine_lacks_is_one_line(scene, capsys, device, says):
+    import torch
+
+    if device.startswith("cuda") and torch.cuda.device_count() > 7:
+        pytest.skip("this machine has that device")
+    root, photos, model = scene
+    before = snapshot(root)
+    refused(capsys, ["predict", "--model", str(model), "--device", device, str(photos)], "device", says)
+    assert snapshot(root) == before
