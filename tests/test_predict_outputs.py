@@ -3,7 +3,6 @@ an input (an image, an input folder, the model, another output), and arguments t
 sense; every input and the model are byte-identical afterwards. The checks come before the
 model is loaded, so a stand-in model file serves."""
 
-import os
 
 import pytest
 
@@ -94,3 +93,32 @@ def test_a_device_this_machine_lacks_is_one_line(scene, capsys, device, says):
     before = snapshot(root)
     refused(capsys, ["predict", "--model", str(model), "--device", device, str(photos)], "device", says)
     assert snapshot(root) == before
+
+
+def test_two_runs_on_one_out_the_second_is_refused_and_the_lock_dies_with_its_holder(scene, capsys, tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from psdfactory.deploy.predict import OutLock, lock_path
+
+    root, photos, model = scene
+    out = root / "same.csv"
+    code = ("import sys, time; from pathlib import Path; from psdfactory.deploy.predict import OutLock; "
+            "OutLock(Path(sys.argv[1])); print('held', flush=True); time.sleep(60)")
+    holder = subprocess.Popen([sys.executable, "-c", code, str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        before = snapshot(photos)
+        refused(capsys, ["predict", "--model", str(model), "--out", str(out), str(photos)],
+                f"--out {out}: another predict (pid {holder.pid}) is writing it now")
+        assert capsys.readouterr().out == ""  # nothing printed before the error (no table header)
+        assert snapshot(photos) == before and not out.exists()
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    time.sleep(0.1)
+    lock = OutLock(out)  # kill -9 released it
+    lock.release()
+    assert not lock_path(out).exists()

@@ -175,14 +175,19 @@ def cmd_predict(a: argparse.Namespace) -> int:
     check_outputs(Path(a.model), a.images, **paths)  # before any work, and before the table's header
     pick_device(a.device)
 
+    header = []
+
     def emit(r: dict) -> None:  # the table is the command's output (stdout), a row as soon as it is made
+        if not header:  # printed with the first row: nothing is printed before an error
+            header.append(True)
+            print(f"{'image':<50} " + " ".join(f"{t:>8}" for t in TARGETS) + f"  ({r['size_definition']}, "
+                  f"{r['weighting']}-weighted)", flush=True)
         if r["error"]:
             print(f"{r['image']:<50} error: {r['error']}", flush=True)
         else:
             print(f"{r['image']:<50} " + " ".join(f"{r[t]:>8.3f}" for t in TARGETS), flush=True)
 
     out = Path(a.out) if a.out else None
-    print(f"{'image':<50} " + " ".join(f"{t:>8}" for t in TARGETS))
     try:
         n, failed = stream_predictions(Path(a.model), a.images, out, a.mm_per_px, device=a.device, resume=a.resume,
                                        emit=emit, overlay_dir=Path(a.overlay) if a.overlay else None,

@@ -334,6 +334,38 @@ def done_rows(out: Path) -> dict[str, dict]:
     return {image_key(r["image"]): r for r in rows if not r["error"]}
 
 
+def lock_path(out: Path) -> Path:
+    return out.with_name(f".{out.name}.lock")
+
+
+class OutLock:
+    """One predict run per --out at a time: an exclusive flock on `.<out>.lock` beside it, held
+    for the run and released by the kernel when the process ends, however it ends (kill -9 too).
+    A second run on the same --out is refused at once, in one line."""
+
+    def __init__(self, out: Path):
+        import fcntl
+
+        self.path = lock_path(out)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.read(self.fd, 32).decode(errors="replace").strip() or "?"
+            os.close(self.fd)
+            raise PsdError(f"--out {out}: another predict (pid {holder}) is writing it now; wait for it to end "
+                           "or choose another --out") from None
+        os.ftruncate(self.fd, 0)
+        os.write(self.fd, str(os.getpid()).encode())
+
+    def release(self) -> None:
+        if self.fd is not None:
+            self.path.unlink(missing_ok=True)
+            os.close(self.fd)
+            self.fd = None
+
+
 class RowWriter:
     """Rows appended to the partial file as they come: flushed at once (a killed run keeps
     every finished row), fsync'ed at most every `sync_s` seconds and at the end."""
@@ -416,6 +448,17 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
     what it did; `out` appears only when every image is done. → (images, failed). An instance
     model can also write overlays, masks and the particle table (`InstanceOutputs`)."""
     outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
+    lock = OutLock(out) if out is not None else None
+    try:
+        return _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_stream, outputs,
+                       size_definition)
+    finally:
+        if lock is not None:
+            lock.release()
+
+
+def _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_stream, outputs,
+            size_definition) -> tuple[int, int]:
     run, meta, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition)
     done = done_rows(out) if (resume and out is not None) else {}
     done = {k: r for k, r in done.items() if all(r.get(c) == what[c] for c in what)}  # rows of another reading: again
