@@ -55,13 +55,17 @@ def validate(config: dict) -> dict:
              f"drop {', '.join(sorted(set(ds) - RERENDER_KEYS))}"
              for n, ds in (config.get("datasets") or {}).items()
              if isinstance(ds, dict) and "rerender_of" in ds and set(ds) - RERENDER_KEYS]
+    if object_size(config) > MAX_YAML_NODES:
+        raise PsdError(f"invalid config: it expands (through YAML aliases) to more than {MAX_YAML_NODES:,} values; "
+                       "write it out without them")
+    extra += non_finite(config)
     if extra:
         raise PsdError("invalid config:\n  " + "\n  ".join(extra))
     try:
         sm_validate(config, str(SCHEMA), set_default=True)
     except WorkflowError as e:
         raise PsdError(f"invalid config: {_short(e)}") from None
-    problems = rerender_problems(config) or resolve_datasets(config)
+    problems = size_problems(config) or rerender_problems(config) or resolve_datasets(config)
     problems = problems or semantic_problems(config)
     if problems:
         raise PsdError("invalid config:\n  " + "\n  ".join(problems))
@@ -89,9 +93,9 @@ def load_config(path: Path) -> dict:
     if not Path(path).is_file():
         raise PsdError(f"config file not found: {path}")
     try:
-        config = yaml.safe_load(Path(path).read_text()) or {}
+        config = read_yaml(path) or {}
     except yaml.YAMLError as e:
-        raise PsdError(f"{path} is not valid YAML: {e}") from None
+        raise PsdError(f"{path} is not valid YAML: {str(e)[:500]}") from None
     if not isinstance(config, dict):
         raise PsdError(f"{path} must hold a mapping of config keys")
     try:
@@ -106,6 +110,131 @@ def _ordered(name: str, r: list, problems: list[str], strict: bool = False) -> N
 
 
 # ---- per-dataset render settings and re-render datasets -------------------------------------
+
+MAX_YAML_NODES = 100_000  # a config file expanded through its aliases: more is a "billion laughs", not a config
+MAX_SCENE_JOBS = 250_000  # stage jobs the DAG may hold (4 per batch of scenes_per_job scenes; bench/dag_scale.py)
+REPO = Path(__file__).resolve().parents[2]  # the source checkout, when the package runs from one
+SOURCE_FOLDERS = ("src", "rules", "workflow", "config", "tests", "slurm", "envs", "bench", ".git")
+
+
+def _expanded_size(node, limit: int, memo: dict | None = None) -> int:
+    """Nodes of a composed YAML document as its aliases expand it (an alias counts its target's
+    whole size each time), stopping past `limit`."""
+    import yaml
+
+    memo = {} if memo is None else memo
+    if id(node) in memo:
+        return memo[id(node)]
+    memo[id(node)] = 1  # a node that holds itself counts once
+    if isinstance(node, yaml.SequenceNode):
+        kids = node.value
+    elif isinstance(node, yaml.MappingNode):
+        kids = [n for pair in node.value for n in pair]
+    else:
+        kids = []
+    n = 1
+    for k in kids:
+        n += _expanded_size(k, limit, memo)
+        if n > limit:
+            break
+    memo[id(node)] = n
+    return n
+
+
+def read_yaml(path: Path) -> object:
+    """A YAML file as Python data, refusing what no config holds: bytes that are not UTF-8, a key
+    twice in one mapping, and aliases that expand past MAX_YAML_NODES nodes (never expanded here)."""
+    import yaml
+
+    raw = Path(path).read_bytes()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise PsdError(f"{path} is not UTF-8 text (byte {e.start}); save it as UTF-8") from None
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    def mapping(loader, node, deep=False):
+        seen = {}
+        for k, _ in node.value:
+            key = loader.construct_object(k, deep=True)
+            if isinstance(key, str) and key != "<<" and key in seen:
+                raise PsdError(f"{path}: key {key!r} appears twice in one mapping (lines {seen[key]} and "
+                               f"{k.start_mark.line + 1}); keep one")
+            seen[key] = k.start_mark.line + 1
+        return loader.construct_mapping(node, deep=deep)
+
+    Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, mapping)
+    loader = Loader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        try:
+            size = _expanded_size(node, MAX_YAML_NODES)
+        except RecursionError:
+            raise PsdError(f"{path} is nested too deeply to be a config") from None
+        if size > MAX_YAML_NODES:
+            raise PsdError(f"{path}: its YAML aliases expand to more than {MAX_YAML_NODES:,} values; "
+                           "write the config out without them")
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
+def object_size(obj: object, limit: int = MAX_YAML_NODES, memo: dict | None = None) -> int:
+    """Values in a config as its shared parts (YAML aliases: one object in several places) expand
+    it, stopping past `limit`: what a schema check or a printout would walk."""
+    memo = {} if memo is None else memo
+    if not isinstance(obj, dict | list):
+        return 1
+    if id(obj) in memo:
+        return memo[id(obj)]
+    memo[id(obj)] = 1
+    n = 1
+    for v in (obj.values() if isinstance(obj, dict) else obj):
+        n += object_size(v, limit, memo)
+        if n > limit:
+            break
+    memo[id(obj)] = n
+    return n
+
+
+def non_finite(config: object, path: str = "", seen: set | None = None) -> list[str]:
+    """Where a config holds NaN or an infinity (YAML's .nan, .inf), which no setting accepts.
+    A part shared by several keys (a YAML alias) is looked at once."""
+    import math
+
+    seen = set() if seen is None else seen
+    if isinstance(config, float) and not math.isfinite(config):
+        return [f"{path or 'the config'}: {config} is not a finite number"]
+    if not isinstance(config, dict | list) or id(config) in seen:
+        return []
+    seen.add(id(config))
+    if isinstance(config, dict):
+        return [p for k, v in config.items() for p in non_finite(v, f"{path}.{k}" if path else str(k), seen)]
+    return [p for i, v in enumerate(config) for p in non_finite(v, f"{path}[{i}]", seen)]
+
+
+def results_problems(results: str) -> list[str]:
+    """Why a results root cannot be used: empty, the filesystem root, the home folder itself, or
+    one of this source checkout's own folders (outputs would mix with the code)."""
+    if not str(results).strip():
+        return ["results: must name a folder (e.g. results)"]
+    root = Path(results).expanduser().resolve()
+    if root == Path(root.anchor):
+        return [f"results: {results!r} is the filesystem root; name a folder for the outputs"]
+    if root == Path.home().resolve():
+        return [f"results: {results!r} is the home folder itself; name a folder inside it"]
+    if (REPO / "Snakefile").is_file():
+        for name in SOURCE_FOLDERS:
+            src = REPO / name
+            if root == REPO or root == src or root.is_relative_to(src):
+                return [f"results: {results!r} is {'the source checkout' if root == REPO else src}; outputs would "
+                        "mix with the code: use e.g. results/"]
+    return []
+
 
 RERENDER_KEYS = {"rerender_of", "render", "n_scenes", "shard_size"}  # what a re-render may set itself
 
@@ -230,8 +359,20 @@ def _mesh_problem(path: str, resolved: str, mtime_ns: int, size: int) -> str | N
     return None
 
 
+def size_problems(config: dict) -> list[str]:
+    """A workflow too large to plan, found by arithmetic before any planning (or listing of scenes)."""
+    n = [int(ds.get("n_scenes") or 0) for ds in config["datasets"].values()]
+    per_job = config["scenes_per_job"]
+    jobs = sum(4 * -(-k // per_job) for k in n)
+    if jobs <= MAX_SCENE_JOBS:
+        return []
+    return [f"datasets: {sum(n):,} scenes make {jobs:,} scene jobs (4 per batch of scenes_per_job = {per_job}), more "
+            f"than the {MAX_SCENE_JOBS:,} a workflow can plan; raise scenes_per_job to at least "
+            f"{-(-4 * sum(n) // MAX_SCENE_JOBS)}"]
+
+
 def semantic_problems(config: dict) -> list[str]:
-    problems: list[str] = []
+    problems: list[str] = results_problems(config["results"])
     for name, ds in config["datasets"].items():
         key = f"datasets.{name}"
         _ordered(f"{key}.count", ds["count"], problems)
