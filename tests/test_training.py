@@ -305,6 +305,31 @@ def test_export_matches_pytorch(trained, tmp_path):
 
 
 @pytest.mark.slow
+def test_a_failed_export_leaves_the_folder_as_it_was(dataset, trained, tmp_path):
+    """An export is one unit: inputs checked first, files made in a hidden folder and swapped in
+    whole, so a failure (bad --int8 results root, an int8 model refused) leaves an earlier export
+    untouched and no half of a new one beside it."""
+    from psdfactory.deploy.export import export
+
+    model, out = trained[0] / "model.pt", tmp_path / "deploy"
+    export(model, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    r = subprocess.run([sys.executable, "-m", "psdfactory.cli", "export", "--model", str(model), "--out-dir", str(out),
+                        "--int8", str(tmp_path / "nonexistent")], capture_output=True, text=True)
+    err = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(err) == 1 and "--int8" in err[0] and "no manifest" in err[0], r.stderr
+    with pytest.raises(PsdError, match="int8 model refused"):
+        export(model, out, int8_results=dataset, dataset="tiny", max_r2_change=-1)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["deploy"]  # no staging folder left behind
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(PsdError, match="is a file; give a folder"):
+        export(model, tmp_path / "file")
+    with pytest.raises(PsdError, match="holds the model"):
+        export(model, trained[0])
+
+
+@pytest.mark.slow
 def test_int8_export_is_checked_and_predicts_like_pytorch(dataset, trained, tmp_path):
     from psdfactory.deploy.export import export
     from psdfactory.deploy.predict import predict_files

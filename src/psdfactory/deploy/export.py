@@ -22,7 +22,54 @@ def export(model_path: Path, out_dir: Path, int8_results: Path | None = None, da
     """ONNX and TorchScript copies of a model, each checked against the PyTorch output; with
     `int8_results` (a results root) also ``model.int8.onnx``, calibrated on the dataset's
     training images and refused if its overall R² on the test split moves more than
-    `max_r2_change` (default ``quantize.MAX_R2_CHANGE``) from the fp32 model's."""
+    `max_r2_change` (default ``quantize.MAX_R2_CHANGE``) from the fp32 model's.
+
+    The export is one unit: every input is checked first, the files are written into a new
+    hidden folder beside `out_dir`, and that folder replaces `out_dir` only when all of them
+    are made and checked. A failed export leaves `out_dir` as it was; an export folder never
+    holds parts of two models."""
+    import shutil
+    import tempfile
+
+    from ..io import current_umask
+
+    out_dir, model_path = Path(out_dir), Path(model_path)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise PsdError(f"--out-dir {out_dir} is a file; give a folder")
+    if model_path.resolve().is_relative_to(out_dir.resolve()):
+        raise PsdError(f"--out-dir {out_dir} holds the model {model_path}, which the export would replace; "
+                       "give another folder")
+    if int8_results is not None:
+        shards = Path(int8_results) / dataset / "manifest" / "scenes"
+        if not shards.is_dir():
+            raise PsdError(f"--int8 {int8_results}: no manifest of dataset {dataset!r} at {shards} to calibrate on "
+                           "(give the results root of a run, and --dataset)")
+    try:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".export", dir=out_dir.parent))
+        stage.chmod(0o777 & ~current_umask())
+    except OSError as e:
+        raise PsdError(f"--out-dir {out_dir}: cannot write in {out_dir.parent} ({e.strerror})") from None
+    try:
+        report = _export_into(model_path, stage, int8_results, dataset, max_r2_change)
+        old = out_dir.with_name(stage.name + ".old")
+        if out_dir.exists():
+            out_dir.rename(old)
+        stage.rename(out_dir)
+        shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    for part in report.values():  # the paths the report names: where the files are now
+        if isinstance(part, dict) and "path" in part:
+            part["path"] = str(out_dir / Path(part["path"]).name)
+    write_json(out_dir / "export.json", report)
+    logger.info(f"exported to {out_dir}/")
+    return report
+
+
+def _export_into(model_path: Path, out_dir: Path, int8_results: Path | None, dataset: str,
+                 max_r2_change: float | None) -> dict:
     from ..learn.runtime import load_model
     from .quantize import MAX_R2_CHANGE, require_onnxruntime
 
@@ -44,9 +91,10 @@ def export(model_path: Path, out_dir: Path, int8_results: Path | None = None, da
 
     wrapped = OutputOnly(model).eval()
     out_dir.mkdir(parents=True, exist_ok=True)
+    kind = f"{meta.get('size_definition', 'b-axis')} size, {meta.get('weighting', 'number')}-weighted"
     report = {"arch": meta["arch"], "input_size": size,
               "input": "float32 Nx3xSxS, RGB/255 normalised with ImageNet mean/std",
-              "output": "float32 Nx3: d10, d50, d90 in mm (number-weighted)", "mm_per_px": meta["mm_per_px"]}
+              "output": f"float32 Nx3: d10, d50, d90 in mm ({kind})", "mm_per_px": meta["mm_per_px"]}
 
     ts_path = out_dir / "model.torchscript.pt"
     with torch.no_grad():
