@@ -34,7 +34,7 @@ def refused(capsys, args, *expect):
 
 @pytest.mark.parametrize("case", ["masks_here", "overlay_twice", "out_is_image", "out_is_model", "out_in_folder",
                                   "particles_is_out", "masks_in_input_folder", "out_is_folder", "masks_is_file",
-                                  "json_beside_onnx"])
+                                  "json_beside_onnx", "out_below_a_file", "masks_below_a_file"])
 def test_an_output_that_is_an_input_or_another_output_is_refused(scene, capsys, monkeypatch, case):
     root, photos, model = scene
     a, b = str(photos / "a.png"), str(photos / "b.jpg")
@@ -55,6 +55,8 @@ def test_an_output_that_is_an_input_or_another_output_is_refused(scene, capsys, 
         "out_is_folder": ([*m, "--out", str(root / "d.csv"), a], "is a folder"),
         "masks_is_file": ([*m, "--masks", str(root / "somefile"), a], "is a file"),
         "json_beside_onnx": (["predict", "--model", str(onnx), "--out", str(root / "meta.json"), a], "is the model"),
+        "out_below_a_file": ([*m, "--out", str(root / "somefile" / "p.csv"), a], "somefile is a file, not a folder"),
+        "masks_below_a_file": ([*m, "--masks", str(root / "somefile" / "m"), a], "is a file, not a folder"),
     }
     (root / "d.csv").mkdir()
     args, *expect = cases[case]
@@ -122,3 +124,31 @@ def test_two_runs_on_one_out_the_second_is_refused_and_the_lock_dies_with_its_ho
     lock = OutLock(out)  # kill -9 released it
     lock.release()
     assert not lock_path(out).exists()
+
+
+@pytest.mark.parametrize("args,says", [
+    (["show", "-n", "0"], "give a whole number of at least 1"),
+    (["show", "-n", "many"], "give a whole number of at least 1"),
+])
+def test_counts_must_be_positive(capsys, args, says):
+    with pytest.raises(SystemExit) as e:
+        main(args)
+    assert e.value.code == 2 and says in capsys.readouterr().err
+
+
+def test_show_and_report_refuse_bad_files_in_one_line(tmp_path, capsys):
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "bad.json").write_text("{not json")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    common = ["--metrics", "m.json", "--scatters", "s.png", "--histories", "h.csv", "--bench", "b.json",
+              "--manifests", "x.parquet", "--html", str(tmp_path / "r.html"), "--md", str(tmp_path / "r.md")]
+    for args, says in [
+        (["show", "--out", str(tmp_path / "folder")], "is a folder"),
+        (["show", "--out", str(tmp_path / "sheet.jpg")], "must end in .png"),
+        (["report", "--config-json", str(tmp_path / "missing.json"), *common], "missing file"),
+        (["report", "--config-json", str(tmp_path / "bad.json"), *common], "is not valid JSON"),
+        (["report", "--config-json", str(tmp_path / "list.json"), *common], "must hold a JSON object"),
+    ]:
+        assert main(args) == 2, args
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and says in err[0] and "Traceback" not in err[0], (args, err)

@@ -46,6 +46,10 @@ def cmd_manifest(a: argparse.Namespace) -> None:
 def cmd_show(a: argparse.Namespace) -> None:
     from .scene.show import contact_sheet
 
+    if Path(a.out).is_dir():
+        raise PsdError(f"--out {a.out} is a folder; give a .png file name")
+    if Path(a.out).suffix.lower() != ".png":
+        raise PsdError(f"--out {a.out}: must end in .png")
     out = contact_sheet(Path(a.results), a.dataset, Path(a.out), a.n)
     logger.info(f"wrote {out}")
 
@@ -99,7 +103,14 @@ def cmd_benchmark(a: argparse.Namespace) -> None:
 def cmd_report(a: argparse.Namespace) -> None:
     from .report import ReportInputs, build_report
 
-    cfg = json.loads(Path(a.config_json).read_text()) if a.config_json else _params(a.params)
+    if a.config_json:
+        from .io import read_json
+
+        cfg = read_json(a.config_json)
+        if not isinstance(cfg, dict):
+            raise PsdError(f"--config-json {a.config_json} must hold a JSON object (the validated config)")
+    else:
+        cfg = _params(a.params)
     inputs = ReportInputs.from_lists(cfg, a.metrics, a.scatters, a.histories, a.bench, a.manifests,
                                      a.contact_sheets, a.compare, a.ceilings)
     build_report(cfg, inputs, Path(a.html), Path(a.md))
@@ -127,6 +138,17 @@ def cmd_ceiling(a: argparse.Namespace) -> None:
             logger.info(f"{a.dataset}: {kind.removesuffix('s')} ceiling R² {r2}")
     if c.get("note"):
         logger.info(f"{a.dataset}: {c['note']}")
+
+
+def positive_int(text: str) -> int:
+    """argparse type: a whole number of at least 1."""
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: give a whole number of at least 1")
+    return v
 
 
 MM_PER_PX_RANGE = (1e-4, 1e3)  # what --mm-per-px may be: from a microscope to a drone
@@ -257,8 +279,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("show", help="contact sheet of a few scenes with masks and labels")
     p.add_argument("--results", default="results")
     p.add_argument("--dataset", default="train")
-    p.add_argument("-n", type=int, default=6, help="number of scenes")
-    p.add_argument("--out", default="contact_sheet.png")
+    p.add_argument("-n", type=positive_int, default=6, help="number of scenes (at least 1)")
+    p.add_argument("--out", default="contact_sheet.png", help="the contact sheet, a .png file")
     p.set_defaults(func=cmd_show)
 
     p = sub.add_parser("train", help="train one architecture → model.pt, history.csv, TensorBoard logs")
@@ -359,7 +381,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--params", required=True, help="the render settings as JSON (cycles included)")
     p.add_argument("--results", required=True)
     p.add_argument("--dataset", required=True)
-    p.add_argument("-n", type=int, default=3, help="number of scenes")
+    p.add_argument("-n", type=positive_int, default=3, help="number of scenes (at least 1)")
     p.add_argument("--out-dir", required=True, help="gets compare.png, compare.json and the renders")
     p.set_defaults(func=cmd_compare_backends)
 

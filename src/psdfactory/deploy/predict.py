@@ -83,6 +83,10 @@ def check_outputs(model: Path, inputs: list[str], out: Path | None = None, masks
             raise PsdError(f"{flag} {path} would overwrite or land among the input images ({hit}): choose a file "
                            "outside them")
     named = list(files.items()) + list(dirs.items())
+    for flag, path in named:
+        blocker = next((a for a in path.absolute().parents if a.exists() and not a.is_dir()), None)
+        if blocker is not None:
+            raise PsdError(f"{flag} {path}: {blocker} is a file, not a folder; choose another place")
     for i, (f1, p1) in enumerate(named):
         for f2, p2 in named[i + 1:]:
             if _same(p1, p2) or (f2 in dirs and _inside(p1, p2)) or (f1 in dirs and _inside(p2, p1)):
@@ -347,8 +351,11 @@ class OutLock:
         import fcntl
 
         self.path = lock_path(out)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as e:
+            raise PsdError(f"--out {out}: cannot write in {self.path.parent} ({e.strerror})") from None
         try:
             fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
