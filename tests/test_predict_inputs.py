@@ -223,7 +223,7 @@ def test_predict_on_a_hostile_folder_names_each_bad_file_and_predicts_the_rest(f
             assert r["error"] == "" and float(r["d10_mm"]) <= float(r["d50_mm"]) <= float(r["d90_mm"]), (name, r)
     assert not (tmp_path / "psd.csv.partial.csv").exists()
     err = capsys.readouterr().err
-    assert f"{len(BAD)} of {len(rows)} images could not be read" in err and "images/s" in err
+    assert f"{len(BAD)} of {len(rows)} images failed" in err and "images/s" in err
 
 
 # ---- a folder of many images: streamed, written as it goes, resumed ---------------------------

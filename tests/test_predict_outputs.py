@@ -3,6 +3,8 @@ an input (an image, an input folder, the model, another output), and arguments t
 sense; every input and the model are byte-identical afterwards. The checks come before the
 model is loaded, so a stand-in model file serves."""
 
+import os
+from pathlib import Path
 
 import pytest
 
@@ -152,3 +154,35 @@ def test_show_and_report_refuse_bad_files_in_one_line(tmp_path, capsys):
         assert main(args) == 2, args
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and says in err[0] and "Traceback" not in err[0], (args, err)
+
+
+def test_what_is_not_an_image_file_is_named_for_what_it_is(tmp_path):
+    from psdfactory import PsdError
+    from psdfactory.io import read_photo
+
+    os.mkfifo(tmp_path / "fifo.png")
+    (tmp_path / "loop.png").symlink_to(tmp_path / "loop.png")
+    (tmp_path / "dangling.png").symlink_to(tmp_path / "nowhere.png")
+    (tmp_path / "folder.png").mkdir()
+    cases = {"fifo.png": "a FIFO (named pipe), not an image file", "loop.png": "a loop of symbolic links",
+             "dangling.png": "a symbolic link to nothing", "folder.png": "a folder, not an image file",
+             "nothing.png": "missing image", "x" * 300 + ".png": "file name is too long",
+             "/dev/null": "a device, not an image file"}
+    for name, says in cases.items():
+        with pytest.raises(PsdError) as e:
+            read_photo(tmp_path / name)
+        assert says in str(e.value), (name, str(e.value))
+
+
+def test_a_folder_without_images_names_itself_and_what_was_looked_for(scene, capsys):
+    root, photos, model = scene
+    empty = root / "empty"
+    empty.mkdir()
+    (empty / "notes.txt").write_text("x")
+    from psdfactory import PsdError
+    from psdfactory.deploy.predict import expand_inputs, image_files
+
+    assert expand_inputs(["y" * 300 + ".png"]) == [Path("y" * 300 + ".png")]  # its row will say why
+    with pytest.raises(PsdError) as e:
+        image_files([str(empty)])
+    assert f"no image files in {empty} (looked for .bmp, .jpeg, .jpg, .png" in str(e.value)

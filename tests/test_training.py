@@ -266,7 +266,7 @@ def test_predict_good_and_bad_files(dataset, trained, tmp_path, capsys):
     assert len(good) == 2 and all(r["d10_mm"] <= r["d50_mm"] <= r["d90_mm"] for r in good)
     assert "not a readable image" in rows[1]["error"] and "missing image" in rows[3]["error"]
     captured = capsys.readouterr()
-    assert "expects images at" in captured.err and "2 of 4 images could not be read" in captured.err
+    assert "expects images at" in captured.err and "2 of 4 images failed (each one's row says why)" in captured.err
     # the same image given with its scale: rescaled to the model's scale, same prediction
     px = json.loads((dataset / "tiny" / "scenes" / "tiny-000008" / "render.json").read_text())["mm_per_px"]
     assert main(["predict", "--model", str(model), "--mm-per-px", str(px), "--out", str(tmp_path / "p.csv"),

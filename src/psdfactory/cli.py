@@ -224,7 +224,7 @@ def cmd_predict(a: argparse.Namespace) -> int:
     if out is not None:
         logger.info(f"wrote {out}")
     if failed:
-        logger.error(f"psdfactory predict: {failed} of {n} images could not be read")
+        logger.error(f"psdfactory predict: {failed} of {n} images failed (each one's row says why)")
     return 1 if failed else 0
 
 

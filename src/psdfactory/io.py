@@ -308,6 +308,34 @@ def pixel_limit() -> int:
     return int(Image.MAX_IMAGE_PIXELS or 2**62)
 
 
+def not_a_file(path: Path) -> str | None:
+    """Why `path` cannot be read as a file, in words (None when it is a regular file): missing, a
+    folder, a FIFO, a device, a socket, a loop of symbolic links, a name too long, no permission."""
+    import stat
+
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return "missing image (no such file)" if not path.is_symlink() else "a symbolic link to nothing"
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            return "a loop of symbolic links, not an image"
+        if e.errno == errno.ENAMETOOLONG:
+            return "the file name is too long for this filesystem"
+        if e.errno in (errno.EACCES, errno.EPERM):
+            return "cannot be read: permission denied"
+        if e.errno == errno.ENOTDIR:
+            return "missing image (a part of its path is a file, not a folder)"
+        return f"cannot be read ({e.strerror})"
+    mode = st.st_mode
+    if stat.S_ISREG(mode):
+        return None
+    kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(mode)
+            else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "a socket" if stat.S_ISSOCK(mode)
+            else "not a regular file")
+    return f"{kind}, not an image file"
+
+
 @contextmanager
 def open_image(path: str | os.PathLike, max_pixels: int | None = None) -> Iterator[Image.Image]:
     """An image opened lazily: only its header is read, and its size is checked against
@@ -320,8 +348,9 @@ def open_image(path: str | os.PathLike, max_pixels: int | None = None) -> Iterat
     limit = max_pixels or pixel_limit()
     bomb = (f"{path} refused: its header declares {{}} pixels, more than the limit of {limit:,} (a decompression "
             "bomb, or an image far larger than a photo); nothing was decoded — crop or downscale it")
-    if not path.is_file():
-        raise PsdError(f"missing image: {path}")
+    problem = not_a_file(path)
+    if problem:
+        raise PsdError(f"{path}: {problem}")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)

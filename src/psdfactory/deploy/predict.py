@@ -29,17 +29,35 @@ IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 NOT_PHOTOS = {"mask.png"}  # the factory's instance masks, found beside its images in a results folder
 
 
+def is_dir(p: Path) -> bool:
+    """Path.is_dir, False (not an error) for a name too long or a path it cannot look at: the
+    file's own row then says why."""
+    try:
+        return p.is_dir()
+    except OSError:
+        return False
+
+
 def expand_inputs(paths: list[str]) -> list[Path]:
     """Files as given; folders → their image files, subfolders included (sorted by path),
     skipping the factory's ``mask.png`` files and hidden folders."""
     out: list[Path] = []
     for p in map(Path, paths):
-        if p.is_dir():
+        if is_dir(p):
             out += sorted(f for f in p.rglob("*") if f.suffix.lower() in IMAGE_SUFFIXES and f.name not in NOT_PHOTOS
                           and not any(part.startswith(".") for part in f.relative_to(p).parts) and f.is_file())
         else:
             out.append(p)
     return out
+
+
+def image_files(inputs: list[str]) -> list[Path]:
+    """``expand_inputs``, refusing none found in one line that names the inputs and the suffixes."""
+    files = expand_inputs(inputs)
+    if not files:
+        raise PsdError(f"no image files in {', '.join(inputs)} (looked for {', '.join(sorted(IMAGE_SUFFIXES))} in "
+                       "the folders and their subfolders, hidden folders and mask.png files left out)")
+    return files
 
 
 def _same(a: Path, b: Path) -> bool:
@@ -56,16 +74,25 @@ def _inside(path: Path, folder: Path) -> bool:
         return False
 
 
-def check_outputs(model: Path, inputs: list[str], out: Path | None = None, masks_dir: Path | None = None,
-                  overlay_dir: Path | None = None, particles_out: Path | None = None,
-                  log: Path | None = None) -> None:
+def check_outputs(model: Path, inputs: list[str], **outputs: Path | None) -> None:
+    """``_check_outputs``; a path the checks cannot look at (a name too long, no permission) is
+    one line too."""
+    try:
+        _check_outputs(model, inputs, **outputs)
+    except OSError as e:
+        raise PsdError(f"{e.filename or 'an output'}: {e.strerror}") from None
+
+
+def _check_outputs(model: Path, inputs: list[str], out: Path | None = None, masks_dir: Path | None = None,
+                   overlay_dir: Path | None = None, particles_out: Path | None = None,
+                   log: Path | None = None) -> None:
     """Refuse, before any work, an output that would overwrite or mix with an input: a file output
     that is the model, an input image or another output, a file output with the wrong suffix or
     that is a folder, and an output folder that is or lies inside an input folder, holds an input
     image, or is a file."""
     model = Path(model)
-    folders = [Path(p) for p in inputs if Path(p).is_dir()]
-    images = [Path(p) for p in inputs if not Path(p).is_dir()]
+    folders = [Path(p) for p in inputs if is_dir(Path(p))]
+    images = [Path(p) for p in inputs if not is_dir(Path(p))]
     files = {"--out": out, "--particles": particles_out, "--log": log}
     files = {k: Path(v) for k, v in files.items() if v is not None}
     dirs = {k: Path(v) for k, v in {"--masks": masks_dir, "--overlay": overlay_dir}.items() if v is not None}
@@ -266,9 +293,7 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
     for line in describe_model(meta, model_path, mm_per_px):
         logger.info(line)
     logger.info(f"d10/d50/d90 of the particles' {what['size_definition']} size, {what['weighting']}-weighted")
-    files = expand_inputs(inputs)
-    if not files:
-        raise PsdError("no image files given")
+    files = image_files(inputs)
     return run, meta, files, what
 
 
@@ -520,6 +545,7 @@ class InstanceOutputs:
         self.masks_dir = Path(masks_dir) if masks_dir else None
         self.particles_out = Path(particles_out) if particles_out else None
         self.names: dict[Path, str] = {}
+        self.written = {"overlays": 0, "instance masks": 0}
         self.writer = None
         if self.particles_out is not None:
             old = self._old_particles(set(keep or {}))
@@ -567,9 +593,11 @@ class InstanceOutputs:
         if self.masks_dir:  # at the size of the image file
             name = self.names.get(path, path.stem)
             write_png(self.masks_dir / f"{name}.png", resize_mask(res.mask, size_hw).astype(np.uint16))
+            self.written["instance masks"] += 1
         if self.overlay_dir:  # on the image as decoded
             over = draw_overlay(image, resize_mask(res.mask, image.shape[:2]), res.sizes_mm, m.ids, min_text_area_px=40)
             write_png(self.overlay_dir / f"{self.names.get(path, path.stem)}.png", over)
+            self.written["overlays"] += 1
         if self.writer is not None:
             self.writer.writerows({"image": str(path), "id": int(m.ids[i]), "area_mm2": float(m.area_mm2[i]),
                                    "sieve_size_mm": float(res.sizes_mm[i]), "volume_mm3": float(m.volume_mm3[i]),
@@ -605,4 +633,4 @@ class InstanceOutputs:
             logger.info(f"wrote {self.particles_out}: {self.n_particles} particles")
         for what, d in (("overlays", self.overlay_dir), ("instance masks", self.masks_dir)):
             if d is not None:
-                logger.info(f"wrote {what} to {d}/")
+                logger.info(f"wrote {self.written[what]} {what} to {d}/")
