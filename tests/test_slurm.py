@@ -28,11 +28,28 @@ TINY = {
 }
 
 
+def free_ports(n: int) -> list[int]:
+    """n TCP ports free on 127.0.0.1 now (the kernel's picks, held together so they differ)."""
+    import socket
+
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_STREAM) for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
 @pytest.fixture(scope="module")
 def cluster():
     if os.geteuid() != 0:
         pytest.skip("bringing up SLURM needs root")
-    env = dict(os.environ, PSD_SLURM_DIR=STATE)
+    # its own ports, so that it runs beside a cluster the user brought up (slurm/cluster.sh up)
+    ports = dict(zip(("PSD_SLURM_DB_PORT", "PSD_SLURM_CTLD_PORT", "PSD_SLURM_SLURMD_PORT", "PSD_SLURM_DBD_PORT"),
+                     map(str, free_ports(4)), strict=True))
+    env = dict(os.environ, PSD_SLURM_DIR=STATE, **ports)
     up = subprocess.run(["bash", str(CLUSTER), "up"], env=env, capture_output=True, text=True, timeout=1200)
     assert up.returncode == 0, up.stdout + up.stderr
     env["SLURM_CONF"] = f"{STATE}/etc/slurm.conf"
