@@ -76,6 +76,7 @@ def preflight():
     Cycles. Looks only, changes nothing: a dry run checks the same."""
     try:
         psd_preflight.check_results(RESULTS)
+        psd_preflight.check_architectures(config["train"]["architectures"])
         psd_preflight.check_slurm(profile_resources(), os.environ, getpass.getuser())
     except PsdError as e:
         raise WorkflowError(f"psdfactory: {e}") from None

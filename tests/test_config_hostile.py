@@ -106,3 +106,16 @@ def test_results_roots_that_mix_outputs_with_other_things_are_refused(tmp_path, 
 
 def test_the_default_results_root_is_fine():
     assert psd_config.load_config(REPO / "config" / "config.yaml")["results"] == "results"
+
+
+def test_an_unknown_architecture_is_refused_before_any_scene(tmp_path, capsys):
+    from psdfactory.preflight import check_architectures
+
+    check_architectures(["instances"], known=lambda: set())  # never asks torchvision
+    check_architectures(["resnet50", "instances"], known=lambda: {"resnet50", "resnet18"})
+    with pytest.raises(PsdError, match=r"'resnet5000' not an estimator .* e.g. resnet18, resnet50"):
+        check_architectures(["resnet5000"], known=lambda: {"resnet50", "resnet18"})
+    text = BASE.format(results="results", n=2, table=60) + "  architectures: [resnet50, nosuchnet]\n"
+    assert main(["check-config", str(write(tmp_path, text))]) == 2
+    err = capsys.readouterr().err
+    assert "train.architectures: 'nosuchnet' not an estimator" in err and len(err.strip().splitlines()) == 1

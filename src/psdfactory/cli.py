@@ -66,8 +66,13 @@ def cmd_compare_backends(a: argparse.Namespace) -> None:
 
 def cmd_check_config(a: argparse.Namespace) -> None:
     from .config import load_config
+    from .preflight import check_architectures
 
     cfg = load_config(Path(a.configfile))
+    try:
+        check_architectures(cfg["train"]["architectures"])
+    except PsdError as e:
+        raise PsdError(f"{a.configfile}: invalid config: {e}") from None
     n = sum(d["n_scenes"] for d in cfg["datasets"].values())
     print(f"{a.configfile}: OK ({len(cfg['datasets'])} datasets, {n} scenes)")
 
