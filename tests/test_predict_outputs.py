@@ -186,3 +186,23 @@ def test_a_folder_without_images_names_itself_and_what_was_looked_for(scene, cap
     with pytest.raises(PsdError) as e:
         image_files([str(empty)])
     assert f"no image files in {empty} (looked for .bmp, .jpeg, .jpg, .png" in str(e.value)
+
+
+def test_a_truncated_or_overwritten_model_is_not_called_dangerous(tmp_path):
+    import torch
+
+    from psdfactory import PsdError
+    from psdfactory.learn.runtime import load_checkpoint
+
+    good = tmp_path / "good.pt"
+    torch.save({"meta": {}, "state_dict": {"w": torch.zeros(4000)}}, good)
+    data = good.read_bytes()
+    (tmp_path / "truncated.pt").write_bytes(data[: len(data) // 2])
+    (tmp_path / "log.pt").write_text("2026-11-25 09:00:00 INFO psdfactory: a log line\n" * 8)
+    (tmp_path / "empty.pt").write_bytes(b"")
+    for name in ("truncated.pt", "log.pt", "empty.pt"):
+        with pytest.raises(PsdError) as e:
+            load_checkpoint(tmp_path / name)
+        msg = str(e.value)
+        assert "not a file torch.save wrote" in msg and "could run code" not in msg, (name, msg)
+    assert load_checkpoint(good)["meta"] == {}

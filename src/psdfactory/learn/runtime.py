@@ -205,6 +205,19 @@ def unpickling_reason(e: Exception) -> str:
     return text.split(" was not an allowed global")[0].replace("\x1b[1m", "").replace("\x1b[0m", "")[:160]
 
 
+def _looks_like_torch_file(path: Path) -> bool:
+    """A whole zip archive (torch.save's format since 1.6: the end-of-archive record is there) or
+    a legacy pickle (it starts with the pickle protocol byte)."""
+    import zipfile
+
+    try:
+        with open(path, "rb") as f:
+            head = f.read(2)
+        return zipfile.is_zipfile(path) or head[:1] == b"\x80"
+    except OSError:
+        return True  # let torch.load say what is wrong
+
+
 def load_checkpoint(path: Path, what: str = "psdfactory model") -> dict:
     """A file written by torch.save, loaded with ``weights_only=True``: tensors and plain data
     (dict, list, tuple, str, int, float, bool, None) only. A file that holds other Python objects
@@ -214,6 +227,9 @@ def load_checkpoint(path: Path, what: str = "psdfactory model") -> dict:
     path = Path(path)
     if not path.is_file():
         raise PsdError(f"{what} file not found: {path}")
+    if not _looks_like_torch_file(path):
+        raise PsdError(f"{path} is not a {what}: not a file torch.save wrote (empty, truncated, or overwritten by "
+                       "something else?); use the model.pt that training wrote")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as e:
