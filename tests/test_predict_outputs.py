@@ -206,3 +206,20 @@ def test_a_truncated_or_overwritten_model_is_not_called_dangerous(tmp_path):
         msg = str(e.value)
         assert "not a file torch.save wrote" in msg and "could run code" not in msg, (name, msg)
     assert load_checkpoint(good)["meta"] == {}
+
+
+def test_an_empty_or_text_onnx_is_one_line(tmp_path, capsys):
+    pytest.importorskip("onnxruntime")
+    import json
+
+    from PIL import Image
+
+    meta = {"arch": "resnet18", "input_size": 32, "image_resolution": 32, "mm_per_px": 0.5,
+            "target_stats": {k: [1.0, 2.0, 3.0] for k in ("mean", "std", "part_mean", "part_std")}}
+    (tmp_path / "meta.json").write_text(json.dumps(meta))
+    Image.new("RGB", (32, 32)).save(tmp_path / "a.png")
+    for content, says in ((b"", "is empty (0 bytes)"), (b"not a model\n", "not an ONNX model ONNX Runtime can load")):
+        (tmp_path / "model.onnx").write_bytes(content)
+        assert main(["predict", "--model", str(tmp_path / "model.onnx"), str(tmp_path / "a.png")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and says in err[0] and "Traceback" not in err[0], err

@@ -190,7 +190,14 @@ def load_predictor(model_path: Path, device: str = "cpu"):
         problems = meta_problems(meta)
         if problems:
             raise PsdError(f"{meta_path} refused: " + "; ".join(problems))
-        ort = OrtModel(model_path, torch.get_num_threads())
+        if model_path.stat().st_size == 0:
+            raise PsdError(f"{model_path} is empty (0 bytes), not an ONNX model; export the model again")
+        try:
+            ort = OrtModel(model_path, torch.get_num_threads())
+        except Exception as e:  # onnxruntime's own errors (InvalidProtobuf, Fail, ...)
+            first = (str(e).strip().splitlines() or [type(e).__name__])[0][:200]
+            raise PsdError(f"{model_path} is not an ONNX model ONNX Runtime can load ({first}); export the model "
+                           "again") from None
         return (lambda x: ort(x.numpy())), meta
     from ..learn.runtime import load_model, pick_device
 
