@@ -4,6 +4,7 @@ the accuracy is a benchmark (README), not a test."""
 
 import csv
 import json
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -398,6 +399,10 @@ def test_predict_writes_overlays_masks_and_particles(tiny, tmp_path, capsys):
             assert im.mode == "RGB" and im.size == (48, 48)
         ids = sorted(int(p["id"]) for p in parts if f"/{scene}/" in p["image"])
         assert ids == sorted(set(np.unique(mask)) - {0})
+    for folder in ("masks", "ov"):  # each output folder says which image each file belongs to
+        with open(tmp_path / folder / "index.csv") as f:
+            index = {Path(r["image"]).parent.name: r["file"] for r in csv.DictReader(f)}
+        assert index == {"tiny-000000": "tiny-000000_image.png", "tiny-000001": "tiny-000001_image.png"}
     assert parts == [] or set(parts[0]) == {"image", "id", "area_mm2", "sieve_size_mm", "volume_mm3", "touches_edge"}
     # --resume skips both images, and the particle table keeps their rows
     assert main([*args[:-1], "--resume", str(scenes)]) == 0

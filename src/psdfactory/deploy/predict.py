@@ -640,4 +640,16 @@ class InstanceOutputs:
             logger.info(f"wrote {self.particles_out}: {self.n_particles} particles")
         for what, d in (("overlays", self.overlay_dir), ("instance masks", self.masks_dir)):
             if d is not None:
-                logger.info(f"wrote {self.written[what]} {what} to {d}/")
+                self._write_index(d)
+                logger.info(f"wrote {self.written[what]} {what} to {d}/ (index.csv: which image each belongs to)")
+
+    def _write_index(self, folder: Path) -> None:
+        """`index.csv` in an output folder: image path → its file, for every file there of this
+        run's images (a --resume keeps those made before)."""
+        from ..io import atomic_path
+
+        rows = [(str(image), f"{name}.png") for image, name in self.names.items() if (folder / f"{name}.png").is_file()]
+        with atomic_path(folder / "index.csv") as tmp, open(tmp, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["image", "file"])
+            w.writerows(rows)
