@@ -223,3 +223,21 @@ def test_an_empty_or_text_onnx_is_one_line(tmp_path, capsys):
         assert main(["predict", "--model", str(tmp_path / "model.onnx"), str(tmp_path / "a.png")]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and says in err[0] and "Traceback" not in err[0], err
+
+
+def test_report_and_show_never_write_over_what_they_read(tmp_path, capsys):
+    (tmp_path / "m.json").write_text("{}")
+    common = ["--metrics", str(tmp_path / "m.json"), "--scatters", "s.png", "--histories", "h.csv",
+              "--bench", "b.json", "--manifests", "x.parquet"]
+    before = (tmp_path / "m.json").read_bytes()
+    for args, says in [
+        (["report", *common, "--html", str(tmp_path / "m.json"), "--md", str(tmp_path / "r.md")], "must end in .html"),
+        (["report", *common, "--html", str(tmp_path / "x.html"), "--md", str(tmp_path / "x.md"),
+          "--ceilings", str(tmp_path / "x.html")], "is also an input of the report"),
+        (["show", "--results", str(tmp_path), "--dataset", "d", "--out", str(tmp_path / "d" / "scenes" / "s.png")],
+         "inside the scenes it shows"),
+    ]:
+        assert main(args) == 2, args
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and says in err[0], (args, err)
+    assert (tmp_path / "m.json").read_bytes() == before

@@ -48,6 +48,9 @@ def cmd_show(a: argparse.Namespace) -> None:
 
     if Path(a.out).is_dir():
         raise PsdError(f"--out {a.out} is a folder; give a .png file name")
+    scenes = Path(a.results) / a.dataset / "scenes"
+    if Path(a.out).resolve().is_relative_to(scenes.resolve()):
+        raise PsdError(f"--out {a.out} is inside the scenes it shows ({scenes}); write the sheet elsewhere")
     if Path(a.out).suffix.lower() != ".png":
         raise PsdError(f"--out {a.out}: must end in .png")
     out = contact_sheet(Path(a.results), a.dataset, Path(a.out), a.n)
@@ -108,6 +111,17 @@ def cmd_benchmark(a: argparse.Namespace) -> None:
 def cmd_report(a: argparse.Namespace) -> None:
     from .report import ReportInputs, build_report
 
+    outputs = {"--html": Path(a.html), "--md": Path(a.md)}
+    reads = [a.config_json, *a.metrics, *a.scatters, *a.histories, *a.bench, *a.manifests, *a.contact_sheets,
+             *(a.compare or []), *a.ceilings]
+    if outputs["--html"].suffix.lower() != ".html" or outputs["--md"].suffix.lower() != ".md":
+        raise PsdError(f"--html {a.html} must end in .html and --md {a.md} in .md")
+    if _same_file(outputs["--html"], outputs["--md"]):
+        raise PsdError("--html and --md are the same file; give each its own")
+    for flag, out in outputs.items():
+        hit = next((r for r in reads if r and _same_file(out, Path(r))), None)
+        if hit:
+            raise PsdError(f"{flag} {out} is also an input of the report ({hit}); give the report its own file")
     if a.config_json:
         from .io import read_json
 
@@ -174,6 +188,13 @@ def mm_per_px_arg(text: str) -> float:
     return v
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve() or (a.exists() and b.exists() and os.path.samefile(a, b))
+    except OSError:
+        return False
+
+
 def log_problem(a: argparse.Namespace) -> str | None:
     """Why --log may not be written: it is one of the command's input or output files."""
     log = Path(a.log)
@@ -182,12 +203,8 @@ def log_problem(a: argparse.Namespace) -> str | None:
     named = [getattr(a, k, None) for k in ("model", "configfile", "config_json", "out", "particles", "html", "md")]
     named += list(getattr(a, "images", None) or [])
     for p in filter(None, named):
-        p = Path(p)
-        try:
-            if log.resolve() == p.resolve() or (log.exists() and p.exists() and os.path.samefile(log, p)):
-                return f"--log {log} is also {p}, which the command reads or writes: give the log its own file"
-        except OSError:
-            continue
+        if _same_file(log, Path(p)):
+            return f"--log {log} is also {p}, which the command reads or writes: give the log its own file"
     return None
 
 
