@@ -22,6 +22,11 @@ from psdfactory.seeding import scene_id, scene_index
 # Validated against the package's schema, src/psdfactory/config.schema.yaml (psd_config.SCHEMA): the
 # one schema file, which `psdfactory check-config` reads too.
 try:
+    for _f in workflow.configfiles:  # read again strictly: UTF-8, no key twice, no alias bomb
+        psd_config.read_yaml(_f)
+except PsdError as e:  # the message names the file
+    raise WorkflowError(str(e)) from None
+try:
     psd_config.validate(config)  # Snakemake's own JSON-schema validation, defaults filled in
 except PsdError as e:  # the message names the key; say which file(s) it came from (or --config)
     raise WorkflowError(f"{', '.join(map(str, workflow.configfiles)) or 'the config'}: {e}") from None

@@ -119,3 +119,16 @@ def test_an_unknown_architecture_is_refused_before_any_scene(tmp_path, capsys):
     assert main(["check-config", str(write(tmp_path, text))]) == 2
     err = capsys.readouterr().err
     assert "train.architectures: 'nosuchnet' not an estimator" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.workflow
+def test_the_workflow_reads_its_config_files_as_strictly(tmp_path):
+    from .workflow_helpers import snakemake
+
+    text = BASE.format(results="results", n=2, table=60)
+    for name, body, says in (("dup.yaml", text + "seed: 1\nseed: 2\n", "key 'seed' appears twice"),
+                             ("nan.yaml", text.replace("table_size: 60", "table_size: .nan"), "not a finite number")):
+        r = snakemake("-n", "--configfile", str(write(tmp_path, body, name)), workdir=tmp_path)
+        out = r.stdout + r.stderr  # (Snakemake prints its errors to stdout)
+        assert r.returncode != 0 and says in out, out[-1500:]
+        assert "Traceback" not in out
