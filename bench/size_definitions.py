@@ -42,25 +42,32 @@ def family_table(n: int, seed: int) -> None:
 
 def timing(repeats: int, seed: int) -> None:
     from psdfactory.scene.shapes import MAKERS, ShapeParams
-    from psdfactory.scene.sizes import minimum_box, pad_vertices, sieve_sizes
+    from psdfactory.scene.sizes import box_and_sieve, grid_widths, minimum_box, pad_vertices, sieve_sizes
 
     print(f"\n2. seconds for 1,000 particles (median of {repeats}; {time.strftime('%Y-%m-%d')})")
-    print(f"{'family':<14}{'vertices':>9}{'minimum box':>13}{'sieve':>9}")
+    print(f"{'family':<14}{'vertices':>9}{'grid':>7}{'minimum box':>13}{'sieve':>9}{'all (as sampling runs it)':>27}")
     for family in ("crushed_rock", "ellipsoid", "granule"):
         rng = np.random.default_rng(seed)
         p = ShapeParams.for_family(family)
         shapes = [MAKERS[family](rng, p) for _ in range(1000)]
         offsets = np.concatenate([[0], np.cumsum([len(v) for v, _ in shapes])])
         verts = pad_vertices(np.concatenate([v for v, _ in shapes]), offsets)
-        box, sieve = [], []
+        grid, box, sieve, whole = [], [], [], []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            _, axes = minimum_box(verts)
+            w = grid_widths(verts)
             t1 = time.perf_counter()
-            sieve_sizes(verts, axes)
-            box.append(t1 - t0)
-            sieve.append(time.perf_counter() - t1)
-        print(f"{family:<14}{verts.shape[1]:>9}{statistics.median(box):>13.2f}{statistics.median(sieve):>9.2f}")
+            _, axes = minimum_box(verts, w)
+            t2 = time.perf_counter()
+            sieve_sizes(verts, axes, w)
+            t3 = time.perf_counter()
+            box_and_sieve([v for v, _ in shapes])
+            grid.append(t1 - t0)
+            box.append(t2 - t1)
+            sieve.append(t3 - t2)
+            whole.append(time.perf_counter() - t3)
+        med = statistics.median
+        print(f"{family:<14}{verts.shape[1]:>9}{med(grid):>7.2f}{med(box):>13.2f}{med(sieve):>9.2f}{med(whole):>27.2f}")
 
 
 def scene_table(config_path: str, dataset: str, n_scenes: int) -> None:

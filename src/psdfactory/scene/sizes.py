@@ -132,16 +132,12 @@ def minimum_box(verts: np.ndarray, widths: np.ndarray | None = None) -> tuple[np
     """Sides of each particle's minimum-volume bounding box, sorted long → short (N, 3), and the
     box's axes (N, 3, 3; rows in the same order). verts: (N, V, 3) as ``pad_vertices`` gives;
     `widths`: ``grid_widths(verts)`` if already computed. The search starts from the
-    principal axes, turned 45° about each, and the three best frames of the grid."""
+    principal axes and the three best frames of the grid."""
     n = len(verts)
     if n == 0:
         return np.zeros((0, 3)), np.zeros((0, 3, 3))
-    pca = _pca_frames(verts)
-    starts = [pca]
-    for ax in np.eye(3):  # the PCA frame turned 45° about each of its axes
-        starts.append(_rodrigues(ax, np.array(np.pi / 4)) @ pca)
     w = grid_widths(verts) if widths is None else widths
-    frames = np.concatenate([np.stack(starts, axis=1), _grid_starts(w, "box", 3)], axis=1)
+    frames = np.concatenate([_pca_frames(verts)[:, None], _grid_starts(w, "box", 3)], axis=1)
     _, best = _search(verts, frames, _box_objective, step0=0.25, min_step=2e-3)
     w = _widths(verts, best[:, None], 3)[:, 0]
     order = np.argsort(-w, axis=1)
@@ -238,7 +234,7 @@ def equivalent_sphere_diameter(volume_mm3: np.ndarray) -> np.ndarray:
     return np.cbrt(6.0 * np.asarray(volume_mm3, dtype=float) / np.pi)
 
 
-def box_and_sieve(meshes: list[np.ndarray], chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+def box_and_sieve(meshes: list[np.ndarray], chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
     """Minimum-box sides (N, 3; a ≥ b ≥ c) and sieve sizes (N,) of particles given as vertex
     arrays. Particles are measured in chunks of similar vertex counts, so that little of the work
     goes to padding."""
