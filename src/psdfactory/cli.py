@@ -11,6 +11,7 @@ import traceback
 from pathlib import Path
 
 from . import PsdError, __version__
+from .io import same_file
 from .psd import SIZE_DEFINITIONS
 
 logger = logging.getLogger(__name__)
@@ -116,10 +117,10 @@ def cmd_report(a: argparse.Namespace) -> None:
              *(a.compare or []), *a.ceilings]
     if outputs["--html"].suffix.lower() != ".html" or outputs["--md"].suffix.lower() != ".md":
         raise PsdError(f"--html {a.html} must end in .html and --md {a.md} in .md")
-    if _same_file(outputs["--html"], outputs["--md"]):
+    if same_file(outputs["--html"], outputs["--md"]):
         raise PsdError("--html and --md are the same file; give each its own")
     for flag, out in outputs.items():
-        hit = next((r for r in reads if r and _same_file(out, Path(r))), None)
+        hit = next((r for r in reads if r and same_file(out, Path(r))), None)
         if hit:
             raise PsdError(f"{flag} {out} is also an input of the report ({hit}); give the report its own file")
     if a.config_json:
@@ -188,13 +189,6 @@ def mm_per_px_arg(text: str) -> float:
     return v
 
 
-def _same_file(a: Path, b: Path) -> bool:
-    try:
-        return a.resolve() == b.resolve() or (a.exists() and b.exists() and os.path.samefile(a, b))
-    except OSError:
-        return False
-
-
 def log_problem(a: argparse.Namespace) -> str | None:
     """Why --log may not be written: it is one of the command's input or output files."""
     log = Path(a.log)
@@ -203,7 +197,7 @@ def log_problem(a: argparse.Namespace) -> str | None:
     named = [getattr(a, k, None) for k in ("model", "configfile", "config_json", "out", "particles", "html", "md")]
     named += list(getattr(a, "images", None) or [])
     for p in filter(None, named):
-        if _same_file(log, Path(p)):
+        if same_file(log, Path(p)):
             return f"--log {log} is also {p}, which the command reads or writes: give the log its own file"
     return None
 

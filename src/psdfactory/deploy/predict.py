@@ -17,7 +17,7 @@ import torch
 from torch.nn import functional as F
 
 from .. import PsdError
-from ..io import read_photo, write_json
+from ..io import read_photo, same_file, write_json
 from ..learn.data import normalise, to_input
 from ..learn.models import main_output
 from ..psd import FOOTPRINT_DEFINITIONS, SIZE_DEFINITIONS, TARGETS, weighted_percentiles
@@ -60,13 +60,6 @@ def image_files(inputs: list[str]) -> list[Path]:
     return files
 
 
-def _same(a: Path, b: Path) -> bool:
-    try:
-        return a.resolve() == b.resolve() or (a.exists() and b.exists() and os.path.samefile(a, b))
-    except OSError:
-        return False
-
-
 def _inside(path: Path, folder: Path) -> bool:
     try:
         return path.resolve().is_relative_to(folder.resolve())
@@ -103,9 +96,9 @@ def _check_outputs(model: Path, inputs: list[str], out: Path | None = None, mask
     for flag, path in files.items():
         if path.is_dir():
             raise PsdError(f"{flag} {path} is a folder; give a file name")
-        if _same(path, model) or _same(path, model.with_name("meta.json")):
+        if same_file(path, model) or same_file(path, model.with_name("meta.json")):
             raise PsdError(f"{flag} {path} is the model: choose another file")
-        hit = next((i for i in images if _same(path, i)), None) or next((f for f in folders if _inside(path, f)), None)
+        hit = next((i for i in images if same_file(path, i)), None) or next((f for f in folders if _inside(path, f)), None)
         if hit is not None:
             raise PsdError(f"{flag} {path} would overwrite or land among the input images ({hit}): choose a file "
                            "outside them")
@@ -116,18 +109,18 @@ def _check_outputs(model: Path, inputs: list[str], out: Path | None = None, mask
             raise PsdError(f"{flag} {path}: {blocker} is a file, not a folder; choose another place")
     for i, (f1, p1) in enumerate(named):
         for f2, p2 in named[i + 1:]:
-            if _same(p1, p2) or (f2 in dirs and _inside(p1, p2)) or (f1 in dirs and _inside(p2, p1)):
+            if same_file(p1, p2) or (f2 in dirs and _inside(p1, p2)) or (f1 in dirs and _inside(p2, p1)):
                 raise PsdError(f"{f1} {p1} and {f2} {p2} would write over each other: give each its own place")
     for flag, d in dirs.items():
         if d.exists() and not d.is_dir():
             raise PsdError(f"{flag} {d} is a file; give a folder")
-        if _inside(model, d) and _same(model.parent, d):
+        if _inside(model, d) and same_file(model.parent, d):
             raise PsdError(f"{flag} {d} is the model's folder: choose another folder")
-        hit = next((f for f in folders if _inside(d, f) or _same(d, f)), None)
+        hit = next((f for f in folders if _inside(d, f) or same_file(d, f)), None)
         if hit is not None:
             raise PsdError(f"{flag} {d} is or lies inside the input folder {hit}: its files would be read as "
                            "photos next time; choose a folder outside it")
-        hit = next((i for i in images if _same(i.parent, d)), None)
+        hit = next((i for i in images if same_file(i.parent, d)), None)
         if hit is not None:
             raise PsdError(f"{flag} {d} holds the input image {hit}, which a mask or overlay could overwrite; "
                            "choose another folder")
