@@ -191,3 +191,14 @@ def test_labels_recomputed_from_the_particle_table(tmp_path, definition, weighti
     b = np.array(parts["b_axis_mm"])
     np.testing.assert_allclose(b, g.size_mm, rtol=1e-3)  # the drawn size is the b-axis
     assert (np.array(parts["sieve_mm"]) <= b * 1.001).all() and (np.array(parts["c_axis_mm"]) <= b).all()
+
+
+@pytest.mark.parametrize("family", ["crushed_rock", "granule"])
+def test_all_silhouettes_at_once_match_one_hull_each(family):
+    rng = np.random.default_rng(8)
+    g = pack(make_particles(family, rng.uniform(2, 20, 60), rng, ShapeParams.for_family(family)))
+    q = rng.normal(size=(60, 4))
+    hulls = sizes.footprints(g["vertices"], g["vert_offsets"], q)
+    batched = sizes.footprints(g["vertices"], g["vert_offsets"], q, g["faces"], g["face_offsets"], chunk=16)
+    for k in ("feret_min_mm", "feret_max_mm", "ecd_mm"):
+        np.testing.assert_allclose(batched[k], hulls[k], rtol=1e-9, err_msg=k)

@@ -254,6 +254,51 @@ def box_and_sieve(meshes: list[np.ndarray], chunk: int = 512) -> tuple[np.ndarra
 
 # ---- footprints: the resting particle seen from above -----------------------------------------
 
+def _convex_footprints(vertices: np.ndarray, vert_offsets: np.ndarray, faces: np.ndarray, face_offsets: np.ndarray,
+                       rot: np.ndarray, chunk: int) -> dict[str, np.ndarray]:
+    n = len(rot)
+    nv, nf = np.diff(vert_offsets), np.diff(face_offsets)
+    pid_v, pid_f = np.repeat(np.arange(n), nv), np.repeat(np.arange(n), nf)
+    xy = np.einsum("vij,vj->vi", rot[pid_v], vertices)[:, :2]
+    tri = faces.astype(np.int64) + vert_offsets[:-1][pid_f, None]  # global vertex indices
+    a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
+    cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    area = 0.25 * np.bincount(pid_f, weights=np.abs(cross), minlength=n)  # ½ Σ |shadow of a face|
+    edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    pid_e = np.concatenate([pid_f] * 3)
+    once = edges[:, 0] < edges[:, 1]  # each edge of a closed mesh, once
+    order = np.argsort(pid_e[once], kind="stable")  # grouped by particle
+    edges, pid_e = edges[once][order], pid_e[once][order]
+    d = xy[edges[:, 1]] - xy[edges[:, 0]]
+    length = np.hypot(d[:, 0], d[:, 1])
+    ok = length > 1e-12 * (1 + np.abs(xy).max(initial=0))  # an edge seen end-on casts no edge
+    normals = np.where(ok[:, None], np.stack([-d[:, 1], d[:, 0]], axis=1) / np.where(ok, length, 1)[:, None], np.nan)
+    fmin, fmax = np.zeros(n), np.zeros(n)
+    ne = np.bincount(pid_e, minlength=n)
+    e_off = np.concatenate([[0], np.cumsum(ne)])
+    for lo in range(0, n, chunk):
+        hi = min(n, lo + chunk)
+        v = _padded(xy, vert_offsets, lo, hi)  # (k, V, 2)
+        nrm = _padded(normals, e_off, lo, hi)  # (k, E, 2)
+        proj = v @ nrm.transpose(0, 2, 1)  # (k, V, E)
+        width = proj.max(axis=1) - proj.min(axis=1)
+        fmin[lo:hi] = np.nanmin(np.where(np.isnan(width), np.inf, width), axis=1)
+        sq = (v**2).sum(-1)
+        d2 = sq[:, :, None] + sq[:, None, :] - 2 * (v @ v.transpose(0, 2, 1))  # squared vertex distances
+        fmax[lo:hi] = np.sqrt(np.maximum(d2.max(axis=(1, 2)), 0.0))
+    fmin = np.where(np.isfinite(fmin), fmin, 0.0)
+    return {"feret_min_mm": fmin, "feret_max_mm": fmax, "ecd_mm": np.sqrt(4.0 * area / np.pi)}
+
+
+def _padded(rows: np.ndarray, offsets: np.ndarray, lo: int, hi: int) -> np.ndarray:
+    """Rows of groups lo..hi-1 (group k = rows[offsets[k]:offsets[k+1]]) as (hi-lo, max count, …),
+    each group padded with its own first row (which changes no extreme)."""
+    counts = np.diff(offsets[lo:hi + 1])
+    idx = offsets[lo:hi, None] + np.minimum(np.arange(max(int(counts.max(initial=1)), 1))[None, :],
+                                            np.maximum(counts[:, None] - 1, 0))
+    return rows[idx]
+
+
 def polygon_measures(points: np.ndarray) -> tuple[float, float, float]:
     """(feret_min, feret_max, area) of the convex hull of 2-D points (M, 2)."""
     from scipy.spatial import ConvexHull, QhullError
@@ -274,11 +319,21 @@ def polygon_measures(points: np.ndarray) -> tuple[float, float, float]:
     return feret_min, feret_max, float(hull.volume)  # a 2-D hull's "volume" is its area
 
 
-def footprints(vertices: np.ndarray, vert_offsets: np.ndarray, quat_xyzw: np.ndarray) -> dict[str, np.ndarray]:
+def footprints(vertices: np.ndarray, vert_offsets: np.ndarray, quat_xyzw: np.ndarray, faces: np.ndarray | None = None,
+               face_offsets: np.ndarray | None = None, chunk: int = 128) -> dict[str, np.ndarray]:
     """Min and max Feret diameter and equivalent-circle diameter of each particle's silhouette on
-    the table (seen straight down, orthographic), from its vertices and settled orientation."""
+    the table (seen straight down, orthographic), from its vertices and settled orientation.
+
+    With the meshes' `faces` (local indices, as ``shapes.pack`` stores them) and the particles
+    convex, all particles at once: the shadow's area is half the summed shadows of its faces
+    (every point of it lies under one face turned up and one turned down), its narrowest caliper
+    lies flush with a shadow edge, which is the shadow of a mesh edge, and its widest joins two
+    vertices. Without faces, one convex hull per particle (any mesh: its hull's shadow)."""
     q = np.asarray(quat_xyzw, dtype=float)
     rot = quat_to_matrix(q / np.linalg.norm(q, axis=1, keepdims=True))
+    if faces is not None:
+        return _convex_footprints(np.asarray(vertices, float), np.asarray(vert_offsets), np.asarray(faces),
+                                  np.asarray(face_offsets), rot, chunk)
     n = len(rot)
     out = {k: np.zeros(n) for k in ("feret_min_mm", "feret_max_mm", "ecd_mm")}
     for i in range(n):

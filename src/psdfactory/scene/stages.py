@@ -190,7 +190,9 @@ def run_label(params: dict, scene_dir: Path) -> dict:
     by_column = {
         "sieve_mm": geometry.sieve_mm, "a_axis_mm": geometry.dims_mm[:, 0], "b_axis_mm": geometry.dims_mm[:, 1],
         "c_axis_mm": geometry.dims_mm[:, 2], "esd_mm": equivalent_sphere_diameter(geometry.volume_mm3),
-        **footprints(geometry.vertices, geometry.vert_offsets, quat),
+        # every built-in family is convex: all silhouettes at once; a user's mesh: one hull each
+        **footprints(geometry.vertices, geometry.vert_offsets, quat,
+                     *((geometry.faces, geometry.face_offsets) if spec["shape_type"] != "mesh" else ())),
     }
     by_definition = {d: by_column[size_column(d)] for d in SIZE_DEFINITIONS}
     labels = scene_labels(by_definition, geometry.volume_mm3, vis, mask.size, tuple(spec["size_bounds"]), lp)
