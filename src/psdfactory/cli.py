@@ -11,7 +11,6 @@ import traceback
 from pathlib import Path
 
 from . import PsdError, __version__
-from .io import same_file
 from .psd import SIZE_DEFINITIONS
 
 logger = logging.getLogger(__name__)
@@ -110,6 +109,7 @@ def cmd_benchmark(a: argparse.Namespace) -> None:
 
 
 def cmd_report(a: argparse.Namespace) -> None:
+    from .io import same_file
     from .report import ReportInputs, build_report
 
     outputs = {"--html": Path(a.html), "--md": Path(a.md)}
@@ -191,6 +191,8 @@ def mm_per_px_arg(text: str) -> float:
 
 def log_problem(a: argparse.Namespace) -> str | None:
     """Why --log may not be written: it is one of the command's input or output files."""
+    from .io import same_file
+
     log = Path(a.log)
     if log.is_dir():
         return f"--log {log} is a folder; give a file name"

@@ -8,9 +8,12 @@ the 'hazen' method of numpy.percentile.
 
 from __future__ import annotations
 
-import numpy as np
+from typing import TYPE_CHECKING
 
 from . import PsdError
+
+if TYPE_CHECKING:  # numpy is imported where it is used: the CLI reads the names here without it
+    import numpy as np
 
 PERCENTILES = (10.0, 50.0, 90.0)
 NAMES = tuple(f"d{q:g}" for q in PERCENTILES)  # "d10", "d50", "d90": the per-target keys of metrics and reports
@@ -51,6 +54,8 @@ ALL_DEFINITION_TARGETS = tuple(t for d in SIZE_DEFINITIONS for w in WEIGHTINGS f
 def weighted_percentiles(values: np.ndarray, weights: np.ndarray | None,
                          q: tuple[float, ...] = PERCENTILES) -> np.ndarray:
     """Percentiles (q in 0..100) of `values` weighted by `weights` (midpoint convention)."""
+    import numpy as np
+
     values = np.asarray(values, dtype=float)
     if values.size == 0:
         raise PsdError("no particles to compute percentiles of")
@@ -65,6 +70,8 @@ def weighted_percentiles(values: np.ndarray, weights: np.ndarray | None,
 
 def cumulative_curve(values: np.ndarray, weights: np.ndarray, sizes: np.ndarray) -> np.ndarray:
     """Fraction of the total weight in particles not larger than each size (Q(x))."""
+    import numpy as np
+
     order = np.argsort(values)
     v, w = values[order], np.cumsum(weights[order])
     idx = np.searchsorted(v, sizes, side="right")
