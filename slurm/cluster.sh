@@ -199,7 +199,9 @@ unlink_default_conf() {
 case "${1:-}" in
     up)
         install_packages
-        [ -f "$CONF" ] || write_configs
+        # the configs follow PSD_SLURM_*_PORT: written anew whenever no daemon of this state folder
+        # runs (a running cluster keeps the ports it was started with)
+        if [ ! -f "$CONF" ] || ! { alive slurmctld || alive slurmdbd || alive mariadbd; }; then write_configs; fi
         link_default_conf
         start_munge
         start_mariadb

@@ -51,6 +51,8 @@ def cluster():
                      map(str, free_ports(4)), strict=True))
     env = dict(os.environ, PSD_SLURM_DIR=STATE, **ports)
     up = subprocess.run(["bash", str(CLUSTER), "up"], env=env, capture_output=True, text=True, timeout=1200)
+    if up.returncode != 0:  # leave no half-started daemons behind for the next run
+        subprocess.run(["bash", str(CLUSTER), "down"], env=env, capture_output=True, text=True, timeout=120)
     assert up.returncode == 0, up.stdout + up.stderr
     env["SLURM_CONF"] = f"{STATE}/etc/slurm.conf"
     env.update(PSD_SLURM_ACCOUNT="psdfactory", PSD_SLURM_PARTITION="local", PSD_SLURM_GPU_PARTITION="local")
