@@ -241,3 +241,16 @@ def test_report_and_show_never_write_over_what_they_read(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and says in err[0], (args, err)
     assert (tmp_path / "m.json").read_bytes() == before
+
+
+def test_log_check_takes_lists_of_paths(tmp_path, capsys):
+    """Commands whose flags take several files (ceiling's --scenes/--particles) get the same --log
+    check: a log over one of them is refused, a log of its own runs the command."""
+    shard = tmp_path / "shard.parquet"
+    shard.write_bytes(b"PAR1")
+    args = ["ceiling", "--params", "{}", "--dataset", "d", "--scenes", str(shard), "--particles", str(shard),
+            "--results", str(tmp_path), "--out", str(tmp_path / "c.json")]
+    assert main(["--log", str(shard), *args]) == 2
+    assert "give the log its own file" in capsys.readouterr().err and shard.read_bytes() == b"PAR1"
+    code = main(["--log", str(tmp_path / "ceiling.log"), *args])  # runs (and fails on the stand-in shard)
+    assert code in (1, 2) and (tmp_path / "ceiling.log").is_file()

@@ -196,9 +196,11 @@ def log_problem(a: argparse.Namespace) -> str | None:
     log = Path(a.log)
     if log.is_dir():
         return f"--log {log} is a folder; give a file name"
-    named = [getattr(a, k, None) for k in ("model", "configfile", "config_json", "out", "particles", "html", "md")]
-    named += list(getattr(a, "images", None) or [])
-    for p in filter(None, named):
+    named = []
+    for k, v in vars(a).items():  # every argument that may name a file: a path, or a list of them
+        if k not in ("log", "params", "command") and isinstance(v, str | list):
+            named += [x for x in (v if isinstance(v, list) else [v]) if isinstance(x, str) and x]
+    for p in named:
         if same_file(log, Path(p)):
             return f"--log {log} is also {p}, which the command reads or writes: give the log its own file"
     return None
