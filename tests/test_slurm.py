@@ -42,10 +42,27 @@ def free_ports(n: int) -> list[int]:
             s.close()
 
 
+def other_cluster() -> str | None:
+    """The state folder of a cluster.sh cluster of another state folder running here (the one a
+    user brought up as the README says), or None."""
+    conf = os.path.realpath("/etc/slurm/slurm.conf")
+    state = os.path.dirname(os.path.dirname(conf))
+    if not conf.startswith("/") or state == STATE or not os.path.isfile(f"{state}/run/slurmctld.pid"):
+        return None
+    try:
+        os.kill(int(open(f"{state}/run/slurmctld.pid").read().strip()), 0)
+    except (OSError, ValueError):
+        return None
+    return state
+
+
 @pytest.fixture(scope="module")
 def cluster():
     if os.geteuid() != 0:
         pytest.skip("bringing up SLURM needs root")
+    if other_cluster():  # its jobs' steps would read that cluster's /etc/slurm/slurm.conf
+        pytest.skip(f"another SLURM cluster runs here ({other_cluster()}): the test cluster runs only on a machine "
+                    f"without one; `PSD_SLURM_DIR={other_cluster()} slurm/cluster.sh down` to run these tests")
     # its own ports, so that it runs beside a cluster the user brought up (slurm/cluster.sh up)
     ports = dict(zip(("PSD_SLURM_DB_PORT", "PSD_SLURM_CTLD_PORT", "PSD_SLURM_SLURMD_PORT", "PSD_SLURM_DBD_PORT"),
                      map(str, free_ports(4)), strict=True))
