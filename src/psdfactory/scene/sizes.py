@@ -22,6 +22,8 @@ the sizes are those of its convex hull, the shape calipers and sieves see.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .geometry import quat_to_matrix
@@ -33,11 +35,8 @@ MIN_STEP_RAD = 2e-4  # the search stops refining a frame below this rotation (~0
 def pad_vertices(vertices: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """Packed vertices (see ``shapes.pack``) → (N, Vmax, 3) float64, each particle centred on its
     vertices' mean and padded with its own first vertex (which changes no width)."""
-    counts = np.diff(offsets)
-    n, vmax = len(counts), int(counts.max(initial=1))
-    idx = offsets[:-1, None] + np.minimum(np.arange(vmax)[None, :], counts[:, None] - 1)
-    v = np.asarray(vertices, dtype=np.float64)[idx]
-    return v - v.mean(axis=1, keepdims=True) if n else v
+    v = _padded(np.asarray(vertices, dtype=np.float64), np.asarray(offsets), 0, len(offsets) - 1)
+    return v - v.mean(axis=1, keepdims=True) if len(v) else v
 
 
 def _rodrigues(axes: np.ndarray, angles: np.ndarray) -> np.ndarray:
@@ -202,14 +201,20 @@ def _nearest_direction(dirs: np.ndarray, grid: np.ndarray) -> np.ndarray:
     return np.abs(dirs @ grid.T).argmax(axis=1)
 
 
-GRID_FRAMES = _frame_grid(600, 18)  # 10,800 frames: every particle's searches start from the best few
-GRID_DIRS = _hemisphere(2400)  # the widths the frames are ranked by: each frame's axes looked up here
-GRID_AXES = np.stack([_nearest_direction(GRID_FRAMES[:, k], GRID_DIRS) for k in range(3)], axis=1)
+@functools.lru_cache(maxsize=1)
+def _grid() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(frames, directions, axes): 10,800 frames that every particle's searches start from the
+    best few of, the 2,400 directions their widths are looked up on, and each frame's three axes
+    as indices into those. Built on first use (~0.4 s), not at import: the label stage never needs it."""
+    frames = _frame_grid(600, 18)
+    dirs = _hemisphere(2400)
+    axes = np.stack([_nearest_direction(frames[:, k], dirs) for k in range(3)], axis=1)
+    return frames, dirs, axes
 
 
 def grid_widths(verts: np.ndarray, chunk: int = 128) -> np.ndarray:
-    """(N, len(GRID_DIRS)) float32: each particle's widths along the grid's directions."""
-    dirs = GRID_DIRS.T.astype(np.float32)
+    """(N, 2400) float32: each particle's widths along the grid's directions."""
+    dirs = _grid()[1].T.astype(np.float32)
     out = np.empty((len(verts), dirs.shape[1]), np.float32)
     for lo in range(0, len(verts), chunk):
         p = verts[lo:lo + chunk].astype(np.float32) @ dirs  # (n, V, K)
@@ -218,15 +223,16 @@ def grid_widths(verts: np.ndarray, chunk: int = 128) -> np.ndarray:
 
 
 def _grid_starts(widths: np.ndarray, kind: str, keep: int, chunk: int = 128) -> np.ndarray:
-    """(N, keep, 3, 3): the `keep` frames of GRID_FRAMES with the smallest box volume (`kind`
+    """(N, keep, 3, 3): the `keep` frames of the grid with the smallest box volume (`kind`
     'box') or sieve objective ('sieve'), their widths looked up in `widths`, per particle."""
+    frames, _, axes = _grid()
     out = np.empty((len(widths), keep, 3, 3))
     for lo in range(0, len(widths), chunk):
         w = widths[lo:lo + chunk]
-        u, v = w[:, GRID_AXES[:, 0]], w[:, GRID_AXES[:, 1]]
-        obj = u * v * w[:, GRID_AXES[:, 2]] if kind == "box" else np.maximum(u, v)
+        u, v = w[:, axes[:, 0]], w[:, axes[:, 1]]
+        obj = u * v * w[:, axes[:, 2]] if kind == "box" else np.maximum(u, v)
         best = np.argpartition(obj, keep, axis=1)[:, :keep]
-        out[lo:lo + chunk] = GRID_FRAMES[best]
+        out[lo:lo + chunk] = frames[best]
     return out
 
 
