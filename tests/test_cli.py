@@ -1,3 +1,4 @@
+import argparse
 import json
 import shutil
 import subprocess
@@ -6,8 +7,10 @@ from pathlib import Path
 
 import pytest
 
+from psdfactory import cli
 from psdfactory import config as psd_config
 from psdfactory.cli import main
+from psdfactory.psd import SIZE_DEFINITIONS
 
 
 def _label_args(cfg, d):
@@ -152,3 +155,135 @@ def test_a_re_renders_ceiling_without_its_sources_manifests_names_the_flags(tmp_
     err = capsys.readouterr().err
     assert "again: its ceilings are fitted on tiny's scenes" in err and "--reference-scenes" in err
     assert not (tmp_path / "ceiling.json").exists()
+
+
+# ---- the command line's surface: help, groups, examples, one-line usage errors -------------------------------
+
+def _commands(ap: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    (sub,) = (a for a in ap._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(sub.choices)
+
+
+def _helps(monkeypatch, columns: int) -> dict[str | None, str]:
+    """`psdfactory --help` (key None) and every `psdfactory <command> --help`, in a terminal this wide."""
+    monkeypatch.setenv("COLUMNS", str(columns))
+    ap = cli.build_parser()
+    return {None: ap.format_help(), **{name: p.format_help() for name, p in _commands(ap).items()}}
+
+
+def test_every_option_of_every_command_has_help_choices_and_defaults(monkeypatch):
+    monkeypatch.setenv("COLUMNS", "100")
+    ap = cli.build_parser()
+    for name, p in [(None, ap), *_commands(ap).items()]:
+        text = " ".join(p.format_help().split())
+        for a in p._actions:
+            if isinstance(a, argparse._HelpAction | argparse._SubParsersAction):
+                continue
+            what = (name, a.option_strings or a.dest)
+            assert a.help and a.help.strip() and a.help != argparse.SUPPRESS, what
+            for choice in a.choices or ():
+                assert choice in text, (*what, choice)  # the choices are listed
+            if a.option_strings and a.default not in (None, False, [], argparse.SUPPRESS):
+                assert f"(default: {a.default})" in text, what
+    assert _commands(ap)["predict"]._option_string_actions["--size-definition"].choices == SIZE_DEFINITIONS
+
+
+def test_user_commands_come_before_the_workflow_commands_in_the_help(monkeypatch):
+    text = _helps(monkeypatch, 100)[None]
+    lines = text.splitlines()
+    assert set(cli.USER_COMMANDS) | set(cli.WORKFLOW_COMMANDS) == set(_commands(cli.build_parser()))
+    assert not set(cli.USER_COMMANDS) & set(cli.WORKFLOW_COMMANDS)
+    assert "{sample," not in text and "{predict," not in text  # no raw list of choices
+    listed = {}
+    for i, line in enumerate(lines):
+        words = line.split()
+        if line.startswith("  ") and words and words[0] in cli.COMMANDS and not line.startswith("  psdfactory"):
+            assert words[0] not in listed, f"{words[0]} listed twice"
+            listed[words[0]] = i
+    heading = lines.index(cli.WORKFLOW_HEADING + ":")
+    assert lines.index("commands:") < heading
+    assert set(listed) == set(cli.COMMANDS)
+    assert all(listed[c] < heading for c in cli.USER_COMMANDS), listed
+    assert all(listed[c] > heading for c in cli.WORKFLOW_COMMANDS), listed
+    assert [c for c in listed if c in cli.USER_COMMANDS][:2] == ["predict", "export"]
+
+
+def _example_commands(text: str) -> list[list[str]]:
+    """The psdfactory command lines in a help's examples, continuation lines joined, comments dropped."""
+    import shlex
+
+    block = text.split("\nexamples:\n", 1)[1].replace("\\\n", " ")
+    out = []
+    for line in block.splitlines():
+        for part in line.split("#")[0].split("&&"):
+            words = shlex.split(part)
+            if words[:1] == ["psdfactory"]:
+                out.append(words[1:])
+    return out
+
+
+@pytest.mark.parametrize("name", [None, *cli.USER_COMMANDS])
+def test_the_main_help_and_each_user_command_show_examples_that_parse(monkeypatch, name):
+    examples = _example_commands(_helps(monkeypatch, 100)[name])
+    assert examples and (name is None or any(e[0] == name for e in examples)), examples
+    if name is None:
+        assert {e[0] for e in examples} >= {"predict", "export", "show", "check-config"}
+    for args in examples:
+        if "--help" not in args:
+            ns = cli.build_parser().parse_args(args)  # the flags are real, the values valid
+            assert ns.command == args[0]
+
+
+@pytest.mark.parametrize("columns", [100, 200])
+def test_the_help_fits_100_columns(monkeypatch, columns):
+    for name, text in _helps(monkeypatch, columns).items():
+        wide = [line for line in text.splitlines() if len(line) > 100]
+        assert not wide, (name, wide)
+
+
+def test_the_rules_call_workflow_commands_by_their_names():
+    """A rule that calls a command calls one the CLI has; each workflow command's help names the rule
+    file that calls it, truly."""
+    import re
+
+    from .conftest import REPO
+
+    called: dict[str, set[str]] = {}
+    for smk in sorted((REPO / "rules").glob("*.smk")):
+        for cmd in re.findall(r"psdfactory --log \{log:q\} ([a-z][a-z-]*)", smk.read_text()):
+            called.setdefault(cmd, set()).add(f"rules/{smk.name}")
+    assert set(called) <= set(cli.COMMANDS), set(called) - set(cli.COMMANDS)
+    assert set(cli.WORKFLOW_COMMANDS) <= set(called), set(cli.WORKFLOW_COMMANDS) - set(called)
+    for cmd, (_, rules) in cli.WORKFLOW_COMMANDS.items():
+        assert rules in called[cmd], (cmd, rules, called[cmd])
+
+
+@pytest.mark.parametrize("args, says", [
+    ([], "psdfactory: error: no command given (see psdfactory --help)"),
+    (["predit", "photos/"], "psdfactory: error: unknown command 'predit': did you mean predict? "
+                            "(see psdfactory --help)"),
+    (["predict", "photos/"], "psdfactory predict: error: the following arguments are required: --model "
+                             "(see psdfactory predict --help)"),
+    (["show", "--frames", "3"], "psdfactory show: error: unrecognized arguments: --frames 3 "
+                                "(see psdfactory show --help)"),
+    (["export", "--model", "m.pt", "--out-dir", "d", "--int8-max-r2-change", "a lot"],
+     "psdfactory export: error: argument --int8-max-r2-change: invalid float value: 'a lot' "
+     "(see psdfactory export --help)"),
+])
+def test_a_bad_invocation_is_one_line_with_exit_code_2(capsys, args, says):
+    with pytest.raises(SystemExit) as e:
+        main(args)
+    out, err = capsys.readouterr()
+    assert e.value.code == 2 and out == "" and err.splitlines() == [says], err
+
+
+def test_predict_with_a_missing_model_prints_one_line_and_no_table_header(tmp_path, capsys):
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "photos" / "a.png").write_bytes(b"\x89PNG not really")
+    model = tmp_path / "models" / "model.pt"
+    assert main(["predict", "--model", str(model), "--out", str(tmp_path / "psd.csv"), str(tmp_path / "photos")]) == 2
+    out, err = capsys.readouterr()
+    assert out == ""  # no header before the error
+    (line,) = err.splitlines()
+    assert line.startswith("psdfactory predict: error: ") and line.endswith(f"model file not found: {model}"), line
+    assert not (tmp_path / "psd.csv").exists() and not (tmp_path / "psd.csv.partial.csv").exists()

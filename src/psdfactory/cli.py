@@ -262,88 +262,325 @@ def _threads(n: int) -> None:
         torch.set_num_threads(n)
 
 
+# --- the command line: two groups of commands, help on every flag, examples -------------------------------------
+
+HELP_COLUMNS = 100  # the help is wrapped to the terminal, and never wider than this
+
+# What a person runs, in the order `psdfactory --help` lists them, with the one line it shows.
+USER_COMMANDS = {
+    "predict": "read d10/d50/d90 (mm) off photos with a trained model → table, CSV or JSON",
+    "export": "ONNX and TorchScript copies of a model (int8 too), checked against PyTorch",
+    "show": "contact sheet of a dataset's scenes: images, masks and labels side by side",
+    "check-config": "validate a config file against the schema, without running anything",
+}
+# The steps of the workflow (rules/*.smk call them, most with --params), in the pipeline's order,
+# with the rule file that calls each.
+WORKFLOW_COMMANDS = {
+    "sample": ("draw each scene's particles → spec.json, geometry.npz", "rules/sample.smk"),
+    "simulate": ("settle the particles with pybullet → poses.parquet, simulate.json", "rules/simulate.smk"),
+    "render": ("render the bed → image.png, mask.png, render.json", "rules/render.smk"),
+    "label": ("PSD labels of each scene → labels.json, particles.parquet", "rules/label.smk"),
+    "manifest": ("gather scenes into one Parquet manifest shard", "rules/manifest.smk"),
+    "ceiling": ("what a dataset's images allow: cross-validated R² ceilings per target", "rules/evaluate.smk"),
+    "train": ("train one architecture → model.pt, history.csv, TensorBoard logs", "rules/train.smk"),
+    "evaluate": ("metrics, predictions and plots of a trained model", "rules/evaluate.smk"),
+    "benchmark": ("inference speed (fp32 eager vs the fast path) and accuracy change", "rules/benchmark.smk"),
+    "compare-backends": ("render a few scenes with both render backends, side by side", "rules/report.smk"),
+    "report": ("the final HTML report and its Markdown twin", "rules/report.smk"),
+}
+WORKFLOW_HEADING = "workflow commands (called by the Snakemake rules; you rarely run these)"
+COMMANDS = (*USER_COMMANDS, *WORKFLOW_COMMANDS)
+
+DESCRIPTION = ("Synthetic particle-bed images, and models trained on them that read a particle size distribution "
+               "(d10/d50/d90 in mm) off a photo. `snakemake -j2` runs the whole factory (scenes, models, report); "
+               "the commands use what it made, and the workflow commands are its steps.")
+
+EXAMPLES = {
+    None: [
+        "snakemake -j2 --configfile config/config.yaml      # the whole factory: scenes → models → report",
+        "psdfactory check-config my.yaml                    # validate a config before a run",
+        "psdfactory show --results results --dataset train -n 8 --out sheet.png",
+        "psdfactory predict --model results/models/instances/model.pt --mm-per-px 0.288 photos/",
+        "psdfactory export --model results/models/efficientnet_b0/model.pt --out-dir deploy/",
+        "psdfactory predict --help                          # a command's options and examples",
+    ],
+    "predict": [
+        "psdfactory predict --model results/models/efficientnet_b0/model.pt photos/ one.jpg",
+        "psdfactory predict --model results/models/instances/model.pt --mm-per-px 0.288 \\",
+        "    --overlay overlays/ --particles grains.csv --out psd.csv photos/",
+        "psdfactory predict --model results/models/instances/model.pt --resume --out psd.csv photos/",
+        "psdfactory predict --model deploy/model.int8.onnx --size-definition sieve photos/",
+        "psdfactory predict --model results/models/resnet50/model.pt --device auto --out psd.json photos/",
+    ],
+    "export": [
+        "psdfactory export --model results/models/efficientnet_b0/model.pt --out-dir deploy/",
+        "psdfactory export --model results/models/efficientnet_b0/model.pt --out-dir deploy/ \\",
+        "    --int8 results                                 # + model.int8.onnx",
+        "psdfactory predict --model deploy/model.int8.onnx photos/      # then: predict with the export",
+    ],
+    "show": [
+        "psdfactory show                                    # results/train → contact_sheet.png",
+        "psdfactory show --results results --dataset ood_test -n 8 --out ood_sheet.png",
+    ],
+    "check-config": [
+        "psdfactory check-config config/config.yaml",
+        "psdfactory check-config my.yaml && snakemake -j2 --configfile my.yaml",
+    ],
+}
+
+
+def _width() -> int:
+    """The help's width: argparse's (the terminal's, less 2), at most HELP_COLUMNS - 2."""
+    import shutil
+
+    return max(40, min(shutil.get_terminal_size().columns, HELP_COLUMNS) - 2)
+
+
+def _text(*paragraphs: str) -> str:
+    """Paragraphs wrapped to the help's width (the help formatter leaves descriptions as they are,
+    so that the examples keep their lines)."""
+    import textwrap
+
+    return "\n\n".join(textwrap.fill(p, _width(), break_on_hyphens=False) for p in paragraphs)
+
+
+def _examples(command: str | None) -> str:
+    return "examples:\n" + "\n".join(f"  {line}" for line in EXAMPLES[command])
+
+
+def _command_list() -> str:
+    """The two groups of commands of ``psdfactory --help``, each name with its one line."""
+    import textwrap
+
+    name_width = max(map(len, COMMANDS)) + 4
+    blocks = []
+    for heading, summaries in (("commands", USER_COMMANDS),
+                               (WORKFLOW_HEADING, {k: v[0] for k, v in WORKFLOW_COMMANDS.items()})):
+        lines = [f"{heading}:"]
+        for name, summary in summaries.items():
+            lines += textwrap.wrap(summary, _width(), initial_indent=f"  {name:<{name_width - 2}}",
+                                   subsequent_indent=" " * name_width, break_on_hyphens=False)
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)
+
+
+class _Help(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Descriptions and epilogs as written (pre-wrapped text, examples line by line), each option's
+    default after its help where it has one worth saying, at most HELP_COLUMNS wide."""
+
+    def __init__(self, prog: str) -> None:
+        super().__init__(prog, max_help_position=30, width=_width())
+
+    def _split_lines(self, text: str, width: int) -> list[str]:
+        import textwrap
+
+        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)  # not "feret-" / "max"
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None or action.default is False or action.default == []:
+            return action.help  # no default to state: "(default: None)" says nothing
+        return super()._get_help_string(action)
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argparse parser whose usage errors are one line: what is wrong, and where the help is."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("formatter_class", _Help)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str) -> None:
+        import re
+
+        if message == "the following arguments are required: <command>":
+            message = "no command given"
+        elif (m := re.match(r"argument <command>: invalid choice: '([^']*)'", message)) is not None:
+            import difflib
+
+            close = difflib.get_close_matches(m[1], COMMANDS, n=1)
+            message = f"unknown command {m[1]!r}" + (f": did you mean {close[0]}?" if close else "")
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+    def parse_args(self, args=None, namespace=None) -> argparse.Namespace:
+        """argparse's, with arguments it does not know refused by the command's parser (whose help
+        has the command's options), not the main one."""
+        ns, extras = self.parse_known_args(args, namespace)
+        if extras:
+            parser = getattr(self, "commands", {}).get(getattr(ns, "command", None), self)
+            parser.error(f"unrecognized arguments: {' '.join(extras)}")
+        return ns
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="psdfactory", description=__doc__)
-    ap.add_argument("--version", action="version", version=f"psdfactory {__version__}")
+    ap = _Parser(prog="psdfactory", usage="psdfactory [-h] [--version] [-q | -v] [--log FILE] <command> ...",
+                 description=_text(DESCRIPTION) + "\n\n" + _command_list(), epilog=_examples(None))
+    ap.add_argument("--version", action="version", version=f"psdfactory {__version__}",
+                    help="print the version and exit")
     loud = ap.add_mutually_exclusive_group()
     loud.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only (no progress bars)")
     loud.add_argument("-v", "--verbose", action="store_true", help="log debugging detail too")
     ap.add_argument("--log", metavar="FILE",
-                    help="write everything the command prints (libraries' output too) to FILE, and its one-line "
-                         "verdict on failure to stderr as well: the rules' job logs, which a full disk can swallow")
-    sub = ap.add_subparsers(dest="command", required=True)
+                    help="write everything the command prints (libraries' output too) to FILE, and its verdict "
+                         "line on failure to stderr as well: the rules' job logs, which a full disk can swallow")
+    # listed by the description, in two groups; `prog` given, or the usage above would become its prefix
+    sub = ap.add_subparsers(dest="command", required=True, metavar="<command>", help=argparse.SUPPRESS,
+                            prog="psdfactory")
 
-    for name, helptext in [
-        ("sample", "draw a scene's particles → spec.json, geometry.npz"),
-        ("simulate", "settle the particles with pybullet → poses.parquet, simulate.json"),
-        ("render", "render the bed → image.png, mask.png, render.json"),
-        ("label", "PSD labels → labels.json, particles.parquet"),
-    ]:
-        p = sub.add_parser(name, help=helptext)
-        p.add_argument("--params", required=True, help="the stage's config slice as JSON")
-        p.add_argument("--skip-up-to-date", action="store_true",
-                       help="skip scenes whose outputs are newer than their inputs and made with these params")
-        p.add_argument("--jobs", type=int, default=1, help="scenes run in parallel processes")
-        p.add_argument("--stamp", help="write a summary JSON here once every scene succeeded")
-        p.add_argument("scene_dirs", nargs="+", metavar="scene_dir")
-        p.set_defaults(func=cmd_stage)
+    def user(name: str, *about: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, description=_text(USER_COMMANDS[name][0].upper() + USER_COMMANDS[name][1:] + ".",
+                                                      *about), epilog=_examples(name))
 
-    p = sub.add_parser("manifest", help="gather scenes into one Parquet shard")
-    p.add_argument("--params", required=True, help='JSON with "split" fractions')
-    p.add_argument("--results", required=True, help="results root (image paths are relative to it)")
-    p.add_argument("--scenes-out", required=True)
-    p.add_argument("--particles-out", required=True)
-    p.add_argument("scene_dirs", nargs="*")
-    p.set_defaults(func=cmd_manifest)
+    def workflow(name: str, *about: str) -> argparse.ArgumentParser:
+        summary, rules = WORKFLOW_COMMANDS[name]
+        return sub.add_parser(name, description=_text(summary[0].upper() + summary[1:] + ".", *about,
+                                                      f"A workflow step: {rules} calls it; you rarely run it."))
 
-    p = sub.add_parser("show", help="contact sheet of a few scenes with masks and labels")
-    p.add_argument("--results", default="results")
-    p.add_argument("--dataset", default="train")
-    p.add_argument("-n", type=positive_int, default=6, help="number of scenes (at least 1)")
-    p.add_argument("--out", default="contact_sheet.png", help="the contact sheet, a .png file")
+    # --- what a person runs ---
+    p = user("predict",
+             "The table goes to stdout, a row per image as soon as it is done; progress and errors go to stderr. "
+             "Exit status: 0, 1 when some images failed (each one's row says why), 2 when nothing could start "
+             "(the one line says why), 130 when interrupted.")
+    p.add_argument("--model", required=True, metavar="FILE",
+                   help="a model.pt written by training (results/models/<arch>/model.pt), or an .onnx written by "
+                        "export (fp32 or int8, with its meta.json beside it)")
+    p.add_argument("--mm-per-px", type=mm_per_px_arg, metavar="MM",
+                   help="scale of the images in mm per pixel (1e-4 to 1e3); they are rescaled to the model's scale "
+                        "(default: the images are at the model's scale, that of its training images)")
+    p.add_argument("--out", metavar="FILE",
+                   help="write the predictions to this .csv or .json file (rows go to <out>.partial.csv as they "
+                        "come; it becomes <out> when every image is done)")
+    p.add_argument("--resume", action="store_true",
+                   help="skip the images that already have a prediction in --out or its .partial.csv "
+                        "(failed ones are retried)")
+    p.add_argument("--device", default="cpu", metavar="DEVICE",
+                   help="where the model runs: cpu, auto (cuda when there is one), cuda, cuda:N (e.g. cuda:1) or mps")
+    p.add_argument("--overlay", metavar="DIR", help="instance models: write each image with its particles' outlines "
+                   "and sizes (mm) drawn on as DIR/<image stem>.png")
+    p.add_argument("--masks", metavar="DIR", help="instance models: write each image's instance mask as "
+                   "DIR/<image stem>.png (16-bit, 0 = background, k = one particle)")
+    p.add_argument("--particles", metavar="FILE", help="instance models: write every measured particle to this CSV "
+                   "(image, id, area_mm2, sieve_size_mm, volume_mm3, touches_edge)")
+    p.add_argument("--size-definition", choices=SIZE_DEFINITIONS, metavar="NAME",
+                   help="what d10/d50/d90 are of: " + ", ".join(SIZE_DEFINITIONS) + " (default: the definition "
+                   "the model was trained on, in the CSV's size_definition column). An instance model also "
+                   "estimates the other solid definitions (sieve, b-axis, c-axis, esd) and measures feret-min, "
+                   "feret-max and ecd on the whole grains it finds; a CNN reads only its own")
+    p.add_argument("images", nargs="+", metavar="IMAGE",
+                   help="image files (.png, .jpg, .tif, .bmp, .webp) and/or folders of them, subfolders included")
+    p.set_defaults(func=cmd_predict)
+
+    p = user("export", "The files are written into a new folder that replaces --out-dir only when every one is "
+             "made and checked: a failed export leaves --out-dir as it was.")
+    p.add_argument("--model", required=True, metavar="FILE",
+                   help="the model.pt to export (results/models/<arch>/model.pt)")
+    p.add_argument("--out-dir", required=True, metavar="DIR",
+                   help="the folder to write model.onnx, model.torchscript.pt, meta.json and export.json to "
+                        "(the instance model: model.onnx, meta.json, export.json)")
+    p.add_argument("--int8", metavar="RESULTS",
+                   help="also model.int8.onnx, calibrated on this results root's training images")
+    p.add_argument("--dataset", default="train", metavar="NAME",
+                   help="with --int8: the dataset (of the config's datasets) to calibrate and check int8 on")
+    p.add_argument("--int8-max-r2-change", type=float, default=None, metavar="R2",
+                   help="refuse the int8 model if its overall R² on the test split moves more than this "
+                        "(default: the benchmark's accuracy budget, 0.005)")
+    p.set_defaults(func=cmd_export)
+
+    p = user("show", "It reads the dataset's manifest (results/<dataset>/manifest): run the workflow first. "
+             "The workflow makes one per dataset too (results/<dataset>/contact_sheet.png, rules/manifest.smk).")
+    p.add_argument("--results", default="results", metavar="DIR", help="the results root of a run: the config's "
+                   "`results` folder")
+    p.add_argument("--dataset", default="train", metavar="NAME", help="the dataset to show (one of the config's "
+                   "datasets)")
+    p.add_argument("-n", type=positive_int, default=6, metavar="N", help="number of scenes (at least 1)")
+    p.add_argument("--out", default="contact_sheet.png", metavar="FILE",
+                   help="the contact sheet, a .png file outside the scenes it shows")
     p.set_defaults(func=cmd_show)
 
-    p = sub.add_parser("train", help="train one architecture → model.pt, history.csv, TensorBoard logs")
-    p.add_argument("--params", required=True, help="training settings as JSON (see learn.train.TrainParams)")
-    p.add_argument("--results", required=True)
-    p.add_argument("--out-dir", required=True)
-    p.add_argument("--threads", type=int, default=0)
-    p.set_defaults(func=cmd_train)
+    p = user("check-config", "It reads the file as a run does (the schema: every key, its type and range; the "
+             "datasets; train.architectures) and prints one line: OK with the counts of datasets and scenes, or "
+             "the file and what is wrong in it. The checks of the machine (the results folder is writable, the "
+             "SLURM profile) come when a run starts.")
+    p.add_argument("configfile", metavar="CONFIG",
+                   help="a config YAML (config/*.yaml are examples; src/psdfactory/config.schema.yaml documents "
+                        "every key)")
+    p.set_defaults(func=cmd_check_config)
 
-    p = sub.add_parser("evaluate", help="metrics, predictions and plots of a trained model")
-    p.add_argument("--params", required=True, help='JSON: {"datasets": [...], "precision": "fp32"}')
-    p.add_argument("--model", required=True)
-    p.add_argument("--results", required=True)
-    p.add_argument("--out-dir", required=True)
-    p.add_argument("--history", help="history.csv to plot the loss curves of")
-    p.add_argument("--threads", type=int, default=0)
-    p.set_defaults(func=cmd_evaluate)
+    # --- the workflow's steps ---
+    for name in ("sample", "simulate", "render", "label"):
+        p = workflow(name)
+        p.add_argument("--params", required=True, metavar="JSON", help="the stage's config slice as JSON")
+        p.add_argument("--skip-up-to-date", action="store_true",
+                       help="skip scenes whose outputs are newer than their inputs and made with these params")
+        p.add_argument("--jobs", type=int, default=1, metavar="N", help="scenes run in parallel processes")
+        p.add_argument("--stamp", metavar="FILE", help="write a summary JSON here once every scene succeeded")
+        p.add_argument("scene_dirs", nargs="+", metavar="SCENE_DIR",
+                       help="scene folders (results/<dataset>/scenes/<scene id>)")
+        p.set_defaults(func=cmd_stage)
 
-    p = sub.add_parser("benchmark", help="inference speed (fp32 eager vs the fast path) and accuracy change")
-    p.add_argument("--params", required=True, help='JSON: {"dataset", "batch_size", "seconds", "repeats"}')
-    p.add_argument("--model", required=True)
-    p.add_argument("--results", required=True)
-    p.add_argument("--out", required=True)
-    p.add_argument("--threads", type=int, default=0)
-    p.set_defaults(func=cmd_benchmark)
+    p = workflow("manifest")
+    p.add_argument("--params", required=True, metavar="JSON", help='JSON with the "split" fractions, e.g. '
+                   '{"split": {"train": 0.7, "val": 0.15, "test": 0.15}}')
+    p.add_argument("--results", required=True, metavar="DIR", help="results root (image paths are relative to it)")
+    p.add_argument("--scenes-out", required=True, metavar="FILE", help="the scene table shard to write (.parquet)")
+    p.add_argument("--particles-out", required=True, metavar="FILE",
+                   help="the particle table shard to write (.parquet)")
+    p.add_argument("scene_dirs", nargs="*", metavar="SCENE_DIR", help="the shard's scene folders")
+    p.set_defaults(func=cmd_manifest)
 
-    p = sub.add_parser("ceiling", help="what a dataset's images allow: cross-validated R² ceilings per target")
-    p.add_argument("--params", required=True, help='JSON: {"bounds": [a, b], "visible_min_px": 1}')
-    p.add_argument("--dataset", required=True)
+    p = workflow("ceiling")
+    p.add_argument("--params", required=True, metavar="JSON", help='JSON: {"bounds": [a, b], "visible_min_px": 1}')
+    p.add_argument("--dataset", required=True, metavar="NAME", help="the dataset the shards are of")
     p.add_argument("--scenes", nargs="+", required=True, metavar="PARQUET", help="the dataset's scene manifest shards")
     p.add_argument("--particles", nargs="+", required=True, metavar="PARQUET", help="its particle manifest shards")
-    p.add_argument("--results", help="the results root the manifests' mask paths are relative to: also compute the "
-                   "footprint ceiling (the instance read-out on the true masks)")
+    p.add_argument("--results", metavar="DIR", help="the results root the manifests' mask paths are relative to: "
+                   "also compute the footprint ceiling (the instance read-out on the true masks)")
     p.add_argument("--reference-scenes", nargs="*", default=[], metavar="PARQUET",
                    help="a re-render's source dataset's scene shards: the read-outs are fitted on its scenes "
                    "of the splits in params' reference (the re-render's are too few to cross-validate)")
     p.add_argument("--reference-particles", nargs="*", default=[], metavar="PARQUET", help="its particle shards")
-    p.add_argument("--out", required=True, help="ceiling.json")
+    p.add_argument("--out", required=True, metavar="FILE", help="the ceiling.json to write")
     p.set_defaults(func=cmd_ceiling)
 
-    p = sub.add_parser("report", help="the final HTML report and its Markdown twin")
-    p.add_argument("--params", default="{}", help="the validated config as JSON")
-    p.add_argument("--config-json", help="or: a file holding it")
+    threads = "PyTorch's CPU threads, 0 for PyTorch's own choice"
+    p = workflow("train")
+    p.add_argument("--params", required=True, metavar="JSON",
+                   help="training settings as JSON (see learn.train.TrainParams)")
+    p.add_argument("--results", required=True, metavar="DIR", help="the results root holding the datasets")
+    p.add_argument("--out-dir", required=True, metavar="DIR",
+                   help="the model's folder: model.pt, history.csv, TensorBoard logs")
+    p.add_argument("--threads", type=int, default=0, metavar="N", help=threads)
+    p.set_defaults(func=cmd_train)
+
+    p = workflow("evaluate")
+    p.add_argument("--params", required=True, metavar="JSON", help='JSON: {"datasets": [...], "precision": "fp32"}')
+    p.add_argument("--model", required=True, metavar="FILE", help="the model.pt to evaluate")
+    p.add_argument("--results", required=True, metavar="DIR", help="the results root holding the datasets")
+    p.add_argument("--out-dir", required=True, metavar="DIR",
+                   help="gets metrics.json, predictions.csv, scatter.png and loss_curve.png")
+    p.add_argument("--history", metavar="CSV", help="history.csv to plot the loss curves of")
+    p.add_argument("--threads", type=int, default=0, metavar="N", help=threads)
+    p.set_defaults(func=cmd_evaluate)
+
+    p = workflow("benchmark")
+    p.add_argument("--params", required=True, metavar="JSON",
+                   help='JSON: {"dataset", "batch_size", "seconds", "repeats"}')
+    p.add_argument("--model", required=True, metavar="FILE", help="the model.pt to time")
+    p.add_argument("--results", required=True, metavar="DIR", help="the results root holding the dataset")
+    p.add_argument("--out", required=True, metavar="FILE", help="the benchmark's JSON to write")
+    p.add_argument("--threads", type=int, default=0, metavar="N", help=threads)
+    p.set_defaults(func=cmd_benchmark)
+
+    p = workflow("compare-backends")
+    p.add_argument("--params", required=True, metavar="JSON", help="the render settings as JSON (cycles included)")
+    p.add_argument("--results", required=True, metavar="DIR", help="the results root holding the dataset")
+    p.add_argument("--dataset", required=True, metavar="NAME", help="the dataset whose scenes are rendered again")
+    p.add_argument("-n", type=positive_int, default=3, metavar="N", help="number of scenes (at least 1)")
+    p.add_argument("--out-dir", required=True, metavar="DIR", help="gets compare.png, compare.json and the renders")
+    p.set_defaults(func=cmd_compare_backends)
+
+    p = workflow("report")
+    p.add_argument("--params", default="{}", metavar="JSON", help="the validated config as JSON")
+    p.add_argument("--config-json", metavar="FILE", help="or: a file holding it (instead of --params)")
     each = "one per architecture, in the order of train.architectures"
     p.add_argument("--metrics", nargs="+", required=True, metavar="JSON", help=f"eval/<arch>/metrics.json, {each}")
     p.add_argument("--scatters", nargs="+", required=True, metavar="PNG", help=f"eval/<arch>/scatter.png, {each}")
@@ -357,57 +594,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="<dataset>/ceiling.json, one per dataset in the config's order (or none)")
     p.add_argument("--compare", nargs=2, metavar=("JSON", "PNG"),
                    help="the backend comparison's compare.json and compare.png")
-    p.add_argument("--html", required=True)
-    p.add_argument("--md", required=True)
+    p.add_argument("--html", required=True, metavar="FILE", help="the report to write (.html)")
+    p.add_argument("--md", required=True, metavar="FILE", help="its Markdown twin to write (.md)")
     p.set_defaults(func=cmd_report)
-
-    p = sub.add_parser("predict", help="d10/d50/d90 in mm for image files or folders")
-    p.add_argument("--model", required=True, help="a model.pt written by training, or an exported .onnx (fp32 or int8)")
-    p.add_argument("--mm-per-px", type=mm_per_px_arg, metavar="MM",
-                   help="scale of the images in mm per pixel (1e-4 to 1e3); they are rescaled to the model's scale")
-    p.add_argument("--out", help="write the predictions to this .csv or .json file (rows go to <out>.partial.csv as "
-                   "they come; it becomes <out> when every image is done)")
-    p.add_argument("--resume", action="store_true",
-                   help="skip the images that already have a prediction in --out or its .partial.csv "
-                        "(failed ones are retried)")
-    p.add_argument("--device", default="cpu", help="cpu (default), auto, cuda or cuda:N")
-    p.add_argument("--overlay", metavar="DIR", help="instance models: write each image with its particles' outlines "
-                   "and sizes (mm) drawn on as DIR/<image stem>.png")
-    p.add_argument("--masks", metavar="DIR", help="instance models: write each image's instance mask as "
-                   "DIR/<image stem>.png (16-bit, 0 = background, k = one particle)")
-    p.add_argument("--particles", metavar="FILE", help="instance models: write every measured particle to this CSV "
-                   "(image, id, area_mm2, sieve_size_mm, volume_mm3, touches_edge)")
-    p.add_argument("--size-definition", choices=SIZE_DEFINITIONS, metavar="NAME",
-                   help="what d10/d50/d90 are of: " + ", ".join(SIZE_DEFINITIONS) + " (default: the definition "
-                   "the model was trained on, in the CSV's size_definition column). An instance model also "
-                   "estimates the other solid definitions (sieve, b-axis, c-axis, esd) and measures feret-min, "
-                   "feret-max and ecd on the whole grains it finds; a CNN reads only its own")
-    p.add_argument("images", nargs="+", help="image files and/or folders of images")
-    p.set_defaults(func=cmd_predict)
-
-    p = sub.add_parser("export",
-                       help="write the model as ONNX and TorchScript (and int8 ONNX), checked against PyTorch")
-    p.add_argument("--model", required=True)
-    p.add_argument("--out-dir", required=True)
-    p.add_argument("--int8", metavar="RESULTS",
-                   help="also model.int8.onnx, calibrated on this results root's training images")
-    p.add_argument("--dataset", default="train", help="dataset to calibrate and check int8 on")
-    p.add_argument("--int8-max-r2-change", type=float, default=None,
-                   help="refuse the int8 model if its overall R² on the test split moves more than this "
-                        "(default: the benchmark's accuracy budget)")
-    p.set_defaults(func=cmd_export)
-
-    p = sub.add_parser("compare-backends", help="render a few scenes with both backends, side by side")
-    p.add_argument("--params", required=True, help="the render settings as JSON (cycles included)")
-    p.add_argument("--results", required=True)
-    p.add_argument("--dataset", required=True)
-    p.add_argument("-n", type=positive_int, default=3, help="number of scenes (at least 1)")
-    p.add_argument("--out-dir", required=True, help="gets compare.png, compare.json and the renders")
-    p.set_defaults(func=cmd_compare_backends)
-
-    p = sub.add_parser("check-config", help="validate a config file against the schema")
-    p.add_argument("configfile")
-    p.set_defaults(func=cmd_check_config)
+    ap.commands = sub.choices  # for _Parser.parse_args
     return ap
 
 
