@@ -5,13 +5,14 @@ from __future__ import annotations
 import base64
 import datetime as dt
 import html
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from . import PsdError, __version__
-from .config import evaluation_datasets, rerender_splits
+from .config import dataset_render, evaluation_datasets, rerender_splits
 from .io import atomic_path, copy_file, pyplot, read_json, save_figure
 from .manifest import read_shards
 from .psd import NAMES
@@ -79,32 +80,78 @@ def label_kind(table) -> str:
     return "; ".join(f"{d} size, {w}-weighted" for d, w in kinds)
 
 
+# The label histograms are shown at the report's full width (at most ~970 px): a figure 9.6 in wide
+# at 100 dpi is 960 px, so its smallest font (HIST_MIN_PT) shows at ~HIST_MIN_PT * 100 / 72 px.
+HIST_FIGSIZE = (9.6, 5.4)
+HIST_DPI = 100
+HIST_MIN_PT = 10
+
+
 def label_histograms(tables: dict, out: Path) -> None:
     plt = pyplot()
-    fig, axes = plt.subplots(2, 3, figsize=(11, 5.5))
+    fig, axes = plt.subplots(2, 3, figsize=HIST_FIGSIZE)
     for ds, t in tables.items():
         for row, suffix, kind in ((0, "_mm", "the targets"), (1, "_v_mm", "volume-weighted")):
             for j, n in enumerate(NAMES):
                 ax = axes[row, j]
                 ax.hist(np.asarray(t.column(f"{n}{suffix}")), bins=20, alpha=0.6, label=ds)
-                ax.set_title(f"{n} ({kind})", fontsize=9)
-                ax.set_xlabel("mm")
-    axes[0, 0].legend(fontsize=8)
-    fig.tight_layout()
-    save_figure(fig, out, dpi=90)
+                ax.set_title(f"{n} ({kind})", fontsize=HIST_MIN_PT + 1)
+                ax.set_xlabel("mm", fontsize=HIST_MIN_PT)
+                ax.set_ylabel("scenes", fontsize=HIST_MIN_PT)
+                ax.tick_params(labelsize=HIST_MIN_PT)
+    # one legend under the panels, in as many columns as the names allow (long names: one a row)
+    longest = max((len(ds) for ds in tables), default=1)
+    ncol = max(1, min(len(tables), 90 // (longest + 6)))
+    rows = -(-len(tables) // ncol)
+    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="lower center", ncol=ncol, fontsize=HIST_MIN_PT,
+               frameon=False)
+    fig.tight_layout(rect=(0, min(0.5, 0.01 + 0.045 * rows), 1, 1))
+    save_figure(fig, out, dpi=HIST_DPI)
+
+
+MISSING = "—"  # a figure that does not exist (or, beside an R², a fraction that would mislead)
 
 
 def _fmt(v, nd=4) -> str:
     if v is None or (isinstance(v, float) and not np.isfinite(v)):
-        return "–"
+        return MISSING
     return f"{v:.{nd}f}"
 
 
+def _finite(v) -> bool:
+    return isinstance(v, int | float) and bool(np.isfinite(v))
+
+
 def _r2_of_ceiling(r2: float, ceiling: float | None) -> str:
-    """R² and, where the ceiling is known and positive, the fraction of it reached."""
-    if ceiling is None or not np.isfinite(ceiling) or ceiling <= 0:
+    """R² and, where the ceiling is known, the fraction of it reached — only where both are
+    positive: a fraction of a negative R² (or of a negative ceiling) reads as nonsense (e.g.
+    −4.6 as "−557 %"), so it shows "—"."""
+    if ceiling is None or not _finite(ceiling):
         return _fmt(r2, 3)
+    if not _finite(r2) or r2 <= 0 or ceiling <= 0:
+        return f"{_fmt(r2, 3)} ({MISSING})"
     return f"{_fmt(r2, 3)} ({100 * r2 / ceiling:.0f} %)"
+
+
+CEILING_ROWS = (("visible", "ceiling: true sizes of the visible particles"),
+                ("footprints", "ceiling: perfect segmentation (footprints of the true masks)"),
+                ("sampling", "ceiling: the generator's μ and σ"))
+
+
+def _ceiling_rows(ceiling: dict | None, width: int) -> list[list[str]]:
+    """The rows of a dataset's ceilings: the visible one's R², the others' as a fraction of it."""
+    vis = (ceiling or {}).get("visible") or {}
+    rows = []
+    for kind, what in CEILING_ROWS:
+        c = (ceiling or {}).get(kind)
+        if c:
+            cells = [_fmt(c[f"{n}_mm"], 3) if kind == "visible" else _r2_of_ceiling(c[f"{n}_mm"], vis.get(f"{n}_mm"))
+                     for n in NAMES]
+            fitted = (ceiling or {}).get("fitted_on")
+            if fitted:  # a re-render's: read-outs fitted on its source's other scenes
+                what += f" (fitted on {fitted['n_scenes']} scenes of {fitted['dataset']})"
+            rows.append([what] + cells + [MISSING] * (width - 4))
+    return rows
 
 
 def accuracy_table(metrics: dict[str, dict], dataset: str, ceiling: dict | None = None,
@@ -118,21 +165,9 @@ def accuracy_table(metrics: dict[str, dict], dataset: str, ceiling: dict | None 
     head = ["model"] + [f"R² {n} (of ceiling)" for n in NAMES]
     for label in rerenders.values():
         head += [f"R² {n} on {label} renders" for n in NAMES]
-    head += [f"MAE {n}" for n in NAMES] + [f"rel. err. {n}" for n in NAMES]
-    head += ["R² overall", "MSE overall", "MAE overall", "order violations"]
-    width = len(head)
-    rows = []
-    for kind, what in (("visible", "ceiling: true sizes of the visible particles"),
-                       ("footprints", "ceiling: perfect segmentation (footprints of the true masks)"),
-                       ("sampling", "ceiling: the generator's μ and σ")):
-        c = (ceiling or {}).get(kind)
-        if c:
-            cells = [_fmt(c[f"{n}_mm"], 3) if kind == "visible" else _r2_of_ceiling(c[f"{n}_mm"], vis.get(f"{n}_mm"))
-                     for n in NAMES]
-            fitted = (ceiling or {}).get("fitted_on")
-            if fitted:  # a re-render's: read-outs fitted on its source's other scenes
-                what += f" (fitted on {fitted['n_scenes']} scenes of {fitted['dataset']})"
-            rows.append([what] + cells + ["–"] * (width - 4))
+    head += [f"MAE {n} (mm)" for n in NAMES] + [f"rel. err. {n}" for n in NAMES]
+    head += ["R² overall", "MSE overall (mm²)", "MAE overall (mm)", "order violations"]
+    rows = _ceiling_rows(ceiling, len(head))
     for arch, m in metrics.items():
         d = m["datasets"].get(dataset)
         if d is None:
@@ -140,7 +175,7 @@ def accuracy_table(metrics: dict[str, dict], dataset: str, ceiling: dict | None 
         r = [arch] + [_r2_of_ceiling(d[n]["r2"], vis.get(f"{n}_mm")) for n in NAMES]
         for ds in rerenders:
             x = m["datasets"].get(ds)
-            r += [_r2_of_ceiling(x[n]["r2"], vis.get(f"{n}_mm")) if x else "–" for n in NAMES]
+            r += [_r2_of_ceiling(x[n]["r2"], vis.get(f"{n}_mm")) if x else MISSING for n in NAMES]
         r += [_fmt(d[n]["mae"], 3) for n in NAMES] + [f"{100 * d[n]['rel_err']:.1f} %" for n in NAMES]
         r += [_fmt(d["overall"]["r2"]), _fmt(d["overall"]["mse"]), _fmt(d["overall"]["mae"]),
               f"{100 * d['order_violations']:.1f} %"]
@@ -156,6 +191,236 @@ def rerenders_of(config: dict, dataset: str) -> dict[str, str]:
             backend = (ds.get("render") or config["render"])["backend"]
             out[name] = f"{'Cycles' if backend == 'cycles' else 'TinyRenderer'} ({name})"
     return out
+
+
+RENDERER_NAMES = {"tiny": "TinyRenderer", "cycles": "Cycles"}
+EXTERNAL = "outside images (e.g. photos)"
+
+
+def renderer_of(config: dict, dataset: str) -> str:
+    """What made a dataset's images: its renderer, or, for a dataset the config does not define
+    (evaluated on images brought from elsewhere, e.g. photos), EXTERNAL."""
+    if dataset not in config["datasets"]:
+        return EXTERNAL
+    backend = dataset_render(config, dataset)["backend"]
+    return RENDERER_NAMES.get(backend, backend)
+
+
+def evaluated_datasets(config: dict, metrics: dict[str, dict]) -> list[str]:
+    """Every dataset any model was evaluated on, the training datasets first, then the others of
+    the training renderers, then other renderers, then datasets from outside the config (the
+    config reaches the report as JSON with sorted keys: its order says nothing)."""
+    train = list(config["train"].get("datasets") or [])
+    seen = [ds for m in metrics.values() for ds in m["datasets"]]
+    trained_with = {renderer_of(config, d) for d in train if d in config["datasets"]}
+
+    def rank(ds: str) -> tuple:
+        if ds in train:
+            return 0, train.index(ds), ds
+        if ds not in config["datasets"]:
+            return 3, 0, ds
+        return (1 if renderer_of(config, ds) in trained_with else 2), 0, ds
+
+    return sorted(dict.fromkeys(seen), key=rank)
+
+
+def mean_true(tables: dict, dataset: str, metrics_of: dict) -> dict[str, float] | None:
+    """The mean true d10/d50/d90 (mm) of the scenes a model was scored on (eval_rows: the test
+    split, or all scenes without one), from the manifests; None where they are not in the shards
+    given or their count differs from the metrics' (then no relative error is shown)."""
+    t = tables.get(dataset)
+    if t is None:
+        return None
+    split = np.asarray(t.column("split").to_pylist(), dtype=object)
+    sel = split == "test" if metrics_of.get("split", "test") == "test" else np.ones(len(split), bool)
+    if int(sel.sum()) != metrics_of.get("n") or not sel.any():
+        return None
+    return {n: float(np.mean(np.asarray(t.column(f"{n}_mm"))[sel])) for n in NAMES}
+
+
+SUMMARY_TARGETS = ("d50", "d90")
+R2_MARGIN = 0.05  # a model within this mean R² of the best counts as "as good" for the fast pick
+
+
+@dataclass(frozen=True)
+class SummaryColumn:
+    dataset: str
+    renderer: str
+    split: str  # e.g. "test split, 24 scenes"
+    mean_true: dict[str, float] | None  # per target, mm (None: no relative error)
+
+
+@dataclass(frozen=True)
+class Summary:
+    """The report's answer to "which model, how good, how fast"."""
+
+    columns: list[SummaryColumn]
+    r2: dict[str, dict[str, list[str]]]  # model → dataset → [R² d50, R² d90] formatted
+    err: dict[str, dict[str, list[str]]]  # model → dataset → [error d50, error d90] formatted
+    devices: list[str]
+    speed: dict[str, dict[str, float]]  # model → device → fast path, batched images/s
+    batch: dict[str, int]  # model → its batched runs' batch size
+    yardstick: str  # what the recommendation ranks on, in words
+    use: dict[str, str]  # model → "use for …" line
+    note: str
+
+
+def _mean_score(d: dict | None) -> float | None:
+    """The mean of the d50 and d90 R² of one model on one dataset."""
+    if not d:
+        return None
+    vals = [d.get(n, {}).get("r2") for n in SUMMARY_TARGETS]
+    return float(np.mean(vals)) if all(_finite(v) for v in vals) else None
+
+
+def _pct(v: float | None) -> str:
+    return MISSING if v is None or not np.isfinite(v) else (f"{100 * v:.0f} %" if v >= 0.1 else f"{100 * v:.1f} %")
+
+
+def _ips(v: float | None) -> str:
+    return MISSING if v is None else (f"{v:.0f}" if v >= 10 else f"{v:.1f}")
+
+
+def summarize(config: dict, metrics: dict[str, dict], bench: dict[str, dict], tables: dict) -> Summary:
+    """Per model, the d50/d90 R² and relative error (MAE ÷ mean true size) on every evaluated
+    dataset, the images/s of its fast path, and a recommendation computed from them: "measure
+    with" the best mean d50/d90 R² on the yardstick (photos where evaluated; else the renderers no
+    model was trained on; else every dataset), "when speed matters" the fastest within R2_MARGIN
+    of it, and for the rest why not."""
+    archs = list(metrics)
+    columns = []
+    for ds in evaluated_datasets(config, metrics):
+        first = next(m["datasets"][ds] for m in metrics.values() if ds in m["datasets"])
+        split = (f"test split, {first.get('n', '?')} scenes" if first.get("split", "test") == "test"
+                 else f"all {first.get('n', '?')} scenes")
+        columns.append(SummaryColumn(ds, renderer_of(config, ds), split, mean_true(tables, ds, first)))
+    r2, err = {}, {}
+    for a in archs:
+        r2[a], err[a] = {}, {}
+        for c in columns:
+            d = metrics[a]["datasets"].get(c.dataset)
+            r2[a][c.dataset] = [_fmt(d[n]["r2"], 2) if d else MISSING for n in SUMMARY_TARGETS]
+            err[a][c.dataset] = [_pct(d[n]["mae"] / c.mean_true[n]) if d and c.mean_true and c.mean_true[n] > 0
+                                 else MISSING for n in SUMMARY_TARGETS]
+    devices = list(dict.fromkeys(r["device"] for b in bench.values() for r in b["results"]))
+    speed = {a: {r["device"]: r["paths"]["fast"]["batched"]["images_per_s"] for r in bench[a]["results"]}
+             for a in archs}
+    batch = {a: next((r["paths"]["fast"]["batched"].get("batch") for r in bench[a]["results"]), None) for a in archs}
+    # ranked on the last device every model was timed on (benchmark's order: the CPU, then the GPU)
+    common = [d for d in devices if all(d in speed[a] for a in archs)]
+    device = common[-1] if common else None
+
+    # the yardstick: the images least like the training ones
+    train = [d for d in (config["train"].get("datasets") or []) if d in config["datasets"]]
+    trained_with = {renderer_of(config, d) for d in train}
+    external = [c for c in columns if c.renderer == EXTERNAL]
+    unseen = [c for c in columns if c.renderer not in trained_with and c.renderer != EXTERNAL]
+    if external:
+        yard = external
+        yard_short = "the outside images (" + " and ".join(c.dataset for c in yard) + ")"
+        yard_text = yard_short
+    elif unseen:
+        yard = unseen
+        yard_short = "the " + " and ".join(f"{c.renderer} renders ({c.dataset})" for c in yard)
+        yard_text = yard_short + (", a renderer no model was trained on" if trained_with else "")
+    else:
+        yard = columns
+        yard_short = yard_text = "every evaluated dataset"
+    score = {}
+    for a in archs:
+        vals = [_mean_score(metrics[a]["datasets"].get(c.dataset)) for c in yard]
+        score[a] = float(np.mean(vals)) if vals and all(v is not None for v in vals) else None
+    fast = {a: speed[a].get(device) if device else None for a in archs}
+    scored = [a for a in archs if score[a] is not None]
+    use = {}
+    best = max(scored, key=lambda a: score[a]) if scored else None
+    near = [a for a in scored if score[a] >= score[best] - R2_MARGIN and fast[a] is not None] if best else []
+    quick = max(near, key=lambda a: fast[a]) if near else None
+    on = f" on {device}" if device else ""
+    if best is not None:
+        use[best] = (f"use to measure: the best mean d50/d90 R² on {yard_text}: {score[best]:.2f}"
+                     + (f", and the fastest of the models within {R2_MARGIN} of it ({_ips(fast[best])} img/s{on})"
+                        if quick == best and len(near) > 1 else "")
+                     + ("" if score[best] > 0 else "; but below 0: no model here measures better than guessing "
+                        "the mean size"))
+    if quick is not None and quick != best:
+        ratio = f", {fast[quick] / fast[best]:.1f}× the speed of {best}" if fast[best] else ""
+        use[quick] = (f"use when speed matters: {_ips(fast[quick])} img/s{on}{ratio}, mean d50/d90 R² "
+                      f"{score[quick]:.2f} on {yard_short}, within {R2_MARGIN} of the best")
+    for a in archs:
+        if a in use:
+            continue
+        if score[a] is None:
+            use[a] = f"no recommendation: no d50/d90 R² on {yard_short}"
+        elif score[a] <= 0:
+            use[a] = (f"do not use: mean d50/d90 R² {score[a]:.2f} on {yard_short}, "
+                      f"{'worse than' if score[a] < 0 else 'no better than'} always answering the mean size")
+        elif quick is not None and fast[a] is not None and fast[a] > fast[quick]:
+            use[a] = (f"quick screening only: the fastest ({_ips(fast[a])} img/s{on}), but mean d50/d90 R² "
+                      f"{score[a]:.2f} on {yard_short}, {score[best] - score[a]:.2f} below {best}")
+        else:
+            faster = quick if quick not in (None, best) else best
+            use[a] = (f"not recommended: {best} measures better ({score[best]:.2f} vs {score[a]:.2f} mean d50/d90 "
+                      f"R² on {yard_short})"
+                      + (f" and {faster} is as fast or faster ({_ips(fast[faster])} vs {_ips(fast[a])} img/s{on})"
+                         if fast[faster] is not None and fast[a] is not None and fast[faster] >= fast[a] else ""))
+    batches = sorted({b for b in batch.values() if b})
+    note = ("R²: 1 is perfect, 0 no better than always answering the mean size, below 0 worse. Error: mean absolute "
+            "error ÷ the mean true size of the scenes scored (—: their true sizes are not in the manifests given). "
+            "Speed: images per second of each model's fast path (Inference speed, below), batched"
+            + (f" (batch {', '.join(map(str, batches))})" if batches else "")
+            + ", each at its own input size"
+            + (f"; ranked on {device}." if device else "."))
+    return Summary(columns, r2, err, devices, speed, batch, yard_text, use, note)
+
+
+def summary_table(s: Summary) -> tuple[list[str], list[list[str]]]:
+    """The summary as one flat table (the Markdown twin's; the HTML card groups the columns)."""
+    head = ["model"]
+    for c in s.columns:
+        head += [f"R² d50 / d90 on {c.dataset} ({c.renderer})", f"error d50 / d90 on {c.dataset}"]
+    head += [f"img/s on {d}" for d in s.devices]
+    rows = [[a] + [x for c in s.columns for x in (" / ".join(s.r2[a][c.dataset]), " / ".join(s.err[a][c.dataset]))]
+            + [_ips(s.speed[a].get(d)) for d in s.devices] for a in s.r2]
+    return head, rows
+
+
+def summary_html(s: Summary, warning: str = "") -> str:
+    """The summary card: a table with one column group per evaluated dataset, then a line per model."""
+    e = html.escape
+    top = "<th rowspan='2'>model</th>" + "".join(
+        f"<th colspan='2'>{_wrap(c.dataset)}<br><span class='sub'>{e(c.renderer)}, {e(c.split)}</span></th>"
+        for c in s.columns) + f"<th colspan='{max(1, len(s.devices))}'>speed</th>"
+    sub = "".join("<th>R² d50 / d90</th><th>error d50 / d90</th>" for _ in s.columns)
+    sub += "".join(f"<th>img/s<br><span class='sub'>{e(d)}</span></th>" for d in s.devices) or "<th>img/s</th>"
+    body = "".join(
+        f"<tr><td>{_wrap(a)}</td>"
+        + "".join(f"<td>{e(' / '.join(s.r2[a][c.dataset]))}</td><td>{e(' / '.join(s.err[a][c.dataset]))}</td>"
+                  for c in s.columns)
+        + ("".join(f"<td>{e(_ips(s.speed[a].get(d)))}</td>" for d in s.devices) or f"<td>{MISSING}</td>")
+        + "</tr>" for a in s.r2)
+    uses = "".join(f"<li><b>{_wrap(a)}</b>: {_wrap(u)}</li>" for a, u in s.use.items())
+    warn = f"<p class='warn'><b>Warning:</b> {e(warning)}</p>" if warning else ""
+    return ("<section id='summary' class='card'><h2>Summary: which model, how good, how fast</h2>"
+            f"<div class='tw'><table class='summary'><thead><tr>{top}</tr><tr>{sub}</tr></thead>"
+            f"<tbody>{body}</tbody></table></div><ul class='use'>{uses}</ul>"
+            f"<p class='note'>{e(s.note)}</p>{warn}</section>")
+
+
+def compact_accuracy_table(metrics: dict[str, dict], dataset: str,
+                           ceiling: dict | None = None) -> tuple[list[str], list[list[str]]]:
+    """What fits a narrow page: per-target R² (with the fraction of the visible ceiling) and MAE
+    in mm; the ceilings lead. The rest is in accuracy_table."""
+    vis = (ceiling or {}).get("visible") or {}
+    r2_head = "R² {} (of ceiling)" if vis else "R² {}"
+    head = ["model"] + [r2_head.format(n) for n in NAMES] + [f"MAE {n} (mm)" for n in NAMES]
+    rows = _ceiling_rows(ceiling, len(head))
+    for arch, m in metrics.items():
+        d = m["datasets"].get(dataset)
+        if d is not None:
+            rows.append([arch] + [_r2_of_ceiling(d[n]["r2"], vis.get(f"{n}_mm")) for n in NAMES]
+                        + [_fmt(d[n]["mae"], 3) for n in NAMES])
+    return head, rows
 
 
 ACCURACY_NOTE = ('Labels are the d10/d50/d90 of the size definition and weighting the dataset table names '
@@ -178,16 +443,17 @@ ACCURACY_NOTE = ('Labels are the d10/d50/d90 of the size definition and weightin
 def instance_table(metrics: dict[str, dict], datasets: list[str]) -> tuple[list[str], list[list[str]]]:
     """The instance estimator's own figures per dataset: calibrated vs raw R², segmentation
     precision / recall / F1 at IoU 0.5, and the size error of matched particles; empty without
-    an instance model."""
-    from .learn.particles import SIEVE_METHODS
-
+    an instance model. The sieve methods are those the metrics hold (the report needs none of the
+    estimator's code)."""
+    methods = list(dict.fromkeys(meth for m in metrics.values() for d in m["datasets"].values()
+                                 for meth in (d.get("size_error") or {}).get("matched_fully_visible", {})))
     head = (["model", "dataset"] + [f"R² {n} calibrated" for n in NAMES] + [f"R² {n} raw" for n in NAMES]
             + ["precision", "recall", "F1", "size error median", "size error p90"]
-            + [f"fully visible: {m.replace('_', ' ')} median / p90" for m in SIEVE_METHODS])
+            + [f"fully visible: {m.replace('_', ' ')} median / p90" for m in methods])
     rows = []
 
     def pct(e: dict | None) -> str:
-        return "–" if not e or not e.get("n") else f"{100 * e['median']:.1f} % / {100 * e['p90']:.1f} %"
+        return MISSING if not e or not e.get("n") else f"{100 * e['median']:.1f} % / {100 * e['p90']:.1f} %"
 
     for arch, m in metrics.items():
         for ds in datasets:
@@ -199,9 +465,9 @@ def instance_table(metrics: dict[str, dict], datasets: list[str]) -> tuple[list[
             vis = se.get("matched_fully_visible", {})
             rows.append([arch, ds] + [_fmt(d[n]["r2"], 3) for n in NAMES] + [_fmt(d["raw"][n]["r2"], 3) for n in NAMES]
                         + [_fmt(seg["precision"], 3), _fmt(seg["recall"], 3), _fmt(seg["f1"], 3),
-                           "–" if not matched["n"] else f"{100 * matched['median']:.1f} %",
-                           "–" if not matched["n"] else f"{100 * matched['p90']:.1f} %",
-                           *(pct(vis.get(meth)) for meth in SIEVE_METHODS)])
+                           MISSING if not matched["n"] else f"{100 * matched['median']:.1f} %",
+                           MISSING if not matched["n"] else f"{100 * matched['p90']:.1f} %",
+                           *(pct(vis.get(meth)) for meth in methods)])
     return head, rows
 
 
@@ -246,7 +512,42 @@ def speed_table(bench: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
                 rows.append([arch, r["device"], str(r["input_size"]), name,
                              _fmt(p["batch1"]["images_per_s"], 1), _fmt(p["batched"]["images_per_s"], 1),
                              _fmt(p["batched"]["ms_per_image"], 2), f"{p['batched']['images_per_s'] / base:.2f}×",
-                             "–" if change is None else f"{change:+.4f}", _fmt(r["params_m"], 1), _fmt(r["gflops"], 2)])
+                             MISSING if change is None else f"{change:+.4f}", _fmt(r["params_m"], 1),
+                             _fmt(r["gflops"], 2)])
+    return head, rows
+
+
+def fast_speed_table(bench: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
+    """One row per model and device: its fast path only (speed_table has every path)."""
+    head = ["model", "device", "input (px)", "fast path", "batch 1 (img/s)", "batched (img/s)", "ms / image (batched)",
+            "vs fp32 (batched)", "R² change vs fp32", "parameters (M)", "GFLOPs"]
+    rows = []
+    for arch, b in bench.items():
+        for r in b["results"]:
+            p, base = r["paths"]["fast"], r["paths"]["fp32"]["batched"]["images_per_s"]
+            change = p.get("r2_change")
+            rows.append([arch, r["device"], str(r["input_size"]), p["name"], _fmt(p["batch1"]["images_per_s"], 1),
+                         _fmt(p["batched"]["images_per_s"], 1), _fmt(p["batched"]["ms_per_image"], 2),
+                         f"{p['batched']['images_per_s'] / base:.2f}×", MISSING if change is None else f"{change:+.4f}",
+                         _fmt(r["params_m"], 1), _fmt(r["gflops"], 2)])
+    return head, rows
+
+
+def compact_instance_table(metrics: dict[str, dict], datasets: list[str]) -> tuple[list[str], list[list[str]]]:
+    """The instance estimator's segmentation and particle size error per dataset (instance_table
+    has the raw R² and every sieve method)."""
+    head = ["model", "dataset", "precision", "recall", "F1", "size error median", "size error p90"]
+    rows = []
+    for arch, m in metrics.items():
+        for ds in datasets:
+            d = m["datasets"].get(ds)
+            if not d or "segmentation" not in d:
+                continue
+            seg, se = d["segmentation"], d["size_error"]
+            matched = se["matched"][se["method"]]
+            rows.append([arch, ds, _fmt(seg["precision"], 3), _fmt(seg["recall"], 3), _fmt(seg["f1"], 3),
+                         MISSING if not matched["n"] else f"{100 * matched['median']:.1f} %",
+                         MISSING if not matched["n"] else f"{100 * matched['p90']:.1f} %"])
     return head, rows
 
 
@@ -256,16 +557,68 @@ def _md_table(head, rows) -> str:
     return "\n".join(lines)
 
 
-def _html_table(head, rows) -> str:
-    h = "".join(f"<th>{html.escape(c)}</th>" for c in head)
-    b = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
-    return f"<table><thead><tr>{h}</tr></thead><tbody>{b}</tbody></table>"
+_NUMBER = re.compile(r"^([-+−]?[\d.]|—$)")  # a figure (right-aligned), not a name or a text
 
 
-def _img_tag(path: Path, alt: str) -> str:
-    data = base64.b64encode(Path(path).read_bytes()).decode()
-    return (f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
-            f"<figcaption>{html.escape(alt)}</figcaption></figure>")
+def _wrap(text: str) -> str:
+    """Escaped, with a line-break opportunity after each _ and / (dataset names, paths): long
+    names wrap there instead of widening their column or breaking at any letter."""
+    return html.escape(text).replace("_", "_<wbr>").replace("/", "/<wbr>")
+
+
+def _html_table(head, rows, cls: str = "") -> str:
+    """A table in its own box: what does not fit scrolls inside it, never the page."""
+    h = "".join(f"<th>{_wrap(c)}</th>" for c in head)
+    b = "".join("<tr>" + "".join(f"<td>{_wrap(c)}</td>" if _NUMBER.match(c) else f"<td class='t'>{_wrap(c)}</td>"
+                                 for c in r) + "</tr>" for r in rows)
+    c = f" class='{cls}'" if cls else ""
+    return f"<div class='tw'><table{c}><thead><tr>{h}</tr></thead><tbody>{b}</tbody></table></div>"
+
+
+def _details(summary: str, *body: str) -> str:
+    return f"<details><summary>{html.escape(summary)}</summary>{''.join(body)}</details>"
+
+
+def _png_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG's header; None for anything else."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR":
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    return None
+
+
+def _img_tag(path: Path, alt: str, cls: str = "full") -> str:
+    """An embedded figure, at most its natural size and at most the page's width (its width and
+    height given, so the page's layout does not move as it loads)."""
+    raw = Path(path).read_bytes()
+    size = _png_size(raw)
+    wh = f' width="{size[0]}" height="{size[1]}"' if size else ""
+    data = base64.b64encode(raw).decode()
+    return (f'<figure class="{cls}"><img alt="{html.escape(alt)}"{wh} src="data:image/png;base64,{data}">'
+            f"<figcaption>{_wrap(alt)}</figcaption></figure>")
+
+
+# The page fits a 1000 px window: at most 1000 px wide, every table in its own box (what cannot
+# shrink scrolls there, not the page), long words (dataset names, paths) broken anywhere.
+STYLE = ("*{box-sizing:border-box}"
+         "body{font-family:system-ui,sans-serif;max-width:1000px;margin:0 auto;padding:0 12px 2em;color:#222;"
+         "line-height:1.4;overflow-wrap:break-word}"
+         "h1{font-size:1.6em;margin:0.6em 0 0.2em}h2{margin-top:1.4em}"
+         ".tw{max-width:100%;overflow-x:auto}"
+         "table{border-collapse:collapse;margin:0.6em 0;font-size:13px}"
+         "td,th{border:1px solid #ccc;padding:3px 5px;text-align:right;vertical-align:top}"
+         "th{background:#f3f3f3;font-weight:600}td.t,td:first-child,th:first-child{text-align:left}"
+         ".sub{font-weight:normal;font-size:12px;color:#555}"
+         ".card{border:2px solid #4a7bb7;border-radius:8px;background:#f5f9ff;padding:0.2em 1em 0.6em;margin:1em 0}"
+         ".card h2{margin:0.5em 0 0.2em;font-size:1.3em}.card table{background:#fff}"
+         ".card th[colspan]{text-align:center}table.summary td{white-space:nowrap}"
+         "ul.use{margin:0.4em 0;padding-left:1.2em}ul.use li{margin:0.15em 0}"
+         ".note{font-size:13px;color:#444;margin:0.3em 0}"
+         "img{max-width:100%;height:auto}"
+         "figure{margin:0.8em 0}figure.half{display:inline-block;vertical-align:top;width:49%;margin:0.5em 0}"
+         "figcaption{font-size:13px;color:#444}"
+         "details{margin:0.5em 0}summary{cursor:pointer;color:#245}"
+         ".warn{background:#fff3cd;border:1px solid #e0c36a;padding:0.6em 1em}"
+         "pre{background:#f7f7f7;padding:1em;font-size:12px;white-space:pre-wrap;overflow-wrap:anywhere}")
 
 
 def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Path) -> None:
@@ -305,13 +658,14 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
                         for r in summary["scenes"]]
     from .learn.evaluate import plot_history
 
-    plot_figs = []
+    scatter_figs, curve_figs = [], []
     for a in archs:
         curve = fig_dir / f"loss_{a}.png"
         plot_history(histories[a], a, curve)
         scatter = fig_dir / f"scatter_{a}.png"
         copy_file(inputs.scatters[a], scatter)
-        plot_figs += [(scatter, f"{a}: predicted vs true"), (curve, f"{a}: training and validation loss")]
+        scatter_figs.append((scatter, f"{a}: predicted vs true"))
+        curve_figs.append((curve, f"{a}: training and validation loss"))
 
     # dataset summary
     count_head = ["dataset", "scenes", "train", "val", "test", "particles / scene", "mm / px", "shape", "labels of"]
@@ -327,58 +681,72 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
     warning = (f"ImageNet weights were not available for {', '.join(fallback)}: trained from scratch "
                "(train.pretrained: auto). Expect lower accuracy than with pretrained weights.") if fallback else ""
     speed_head, speed_rows = speed_table(bench)
+    fast_head, fast_rows = fast_speed_table(bench)
+    summ = summarize(config, metrics, bench, tables)
     cfg_yaml = yaml.safe_dump(config, sort_keys=False)
     when = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+    ceilings = {ds: read_json(f) for ds, f in inputs.ceilings.items()}
+    tested = evaluation_datasets(config)  # not the re-renders that are training images only
+    tested += [c.dataset for c in summ.columns if c.dataset not in tested]  # and any other evaluated one
+    where = {c.dataset: f"{c.renderer}, {c.split}" for c in summ.columns}
+    acc = {ds: accuracy_table(metrics, ds, ceilings.get(ds), rerenders_of(config, ds)) for ds in tested}
+    compact = {ds: compact_accuracy_table(metrics, ds, ceilings.get(ds)) for ds in tested}
+    inst_head, inst_rows = instance_table(metrics, tested)
+    inst_compact = compact_instance_table(metrics, tested)
 
-    md = ["# psdfactory report", "", f"Generated {when} by psdfactory {__version__}.", ""]
+    md = ["# psdfactory report", "", "## Summary: which model, how good, how fast", "",
+          _md_table(*summary_table(summ)), ""]
+    md += [f"- **{a}**: {u}" for a, u in summ.use.items()] + ["", summ.note, ""]
     if warning:
         md += [f"> **Warning:** {warning}", ""]
+    md += [f"Generated {when} by psdfactory {__version__}.", ""]
     md += ["## Datasets", "", _md_table(count_head, count_rows), ""]
     if compare_rows:
         md += ["Render backends compared on the same settled poses "
                f"({summary['resolution']} px, Cycles at {summary['cycles'].get('samples', '?')} samples):", "",
                _md_table(compare_head, compare_rows), ""]
     md += [f"![{c}](figures/{p.name})" for p, c in figures] + [""]
-    ceilings = {ds: read_json(f) for ds, f in inputs.ceilings.items()}
-    tested = evaluation_datasets(config)  # not the re-renders that are training images only
-    acc = {ds: accuracy_table(metrics, ds, ceilings.get(ds), rerenders_of(config, ds)) for ds in tested}
     md += ["## Accuracy", "", ACCURACY_NOTE, ""]
     for ds in tested:
-        md += [f"### {ds}", "", _md_table(*acc[ds]), ""]
-    inst_head, inst_rows = instance_table(metrics, datasets)
+        md += [f"### {ds} ({where.get(ds, renderer_of(config, ds))})", "", _md_table(*compact[ds]), "",
+               "All figures:", "", _md_table(*acc[ds]), ""]
     if inst_rows:
-        md += ["## Instance estimator", "", INSTANCE_NOTE, "", _md_table(inst_head, inst_rows), ""]
-    md += ["## Inference speed", "", fast_path_rule(bench), "", _md_table(speed_head, speed_rows), ""]
-    md += [f"![{c}](figures/{p.name})" for p, c in plot_figs] + [""]
+        md += ["## Instance estimator", "", INSTANCE_NOTE, "", _md_table(*inst_compact), "",
+               "All figures:", "", _md_table(inst_head, inst_rows), ""]
+    md += ["## Inference speed", "", fast_path_rule(bench), "", _md_table(fast_head, fast_rows), "",
+           "Every path measured:", "", _md_table(speed_head, speed_rows), ""]
+    md += [f"![{c}](figures/{p.name})" for p, c in scatter_figs + curve_figs] + [""]
     md += ["## Weights used", "", _md_table(["CNN model", "weights"], weights), ""]
     md += ["## Configuration", "", "```yaml", cfg_yaml.rstrip(), "```", ""]
     with atomic_path(out_md) as tmp:
         tmp.write_text("\n".join(md))
 
-    style = ("body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}"
-             "table{border-collapse:collapse;margin:1em 0;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px;"
-             "text-align:right}th{background:#f3f3f3}td:first-child{text-align:left}img{max-width:100%}"
-             "figure{display:inline-block;margin:0.5em;vertical-align:top;max-width:48%}"
-             ".warn{background:#fff3cd;border:1px solid #e0c36a;padding:0.6em 1em}pre{background:#f7f7f7;padding:1em;"
-             "overflow:auto;font-size:12px}")
-    h = [f"<!doctype html><html><head><meta charset='utf-8'><title>psdfactory report</title><style>{style}</style>"
-         "</head><body>", "<h1>psdfactory report</h1>", f"<p>Generated {when} by psdfactory {__version__}.</p>"]
-    if warning:
-        h.append(f"<p class='warn'><b>Warning:</b> {html.escape(warning)}</p>")
+    e = html.escape
+    h = [f"<!doctype html><html lang='en'><head><meta charset='utf-8'>"
+         "<meta name='viewport' content='width=device-width, initial-scale=1'><title>psdfactory report</title>"
+         f"<style>{STYLE}</style></head><body>", "<h1>psdfactory report</h1>", summary_html(summ, warning),
+         f"<p class='note'>Generated {when} by psdfactory {__version__}.</p>"]
     h += ["<h2>Datasets</h2>", _html_table(count_head, count_rows)]
     if compare_rows:
         h += [f"<p>Render backends compared on the same settled poses ({summary['resolution']} px, Cycles at "
               f"{summary['cycles'].get('samples', '?')} samples):</p>", _html_table(compare_head, compare_rows)]
     h += [_img_tag(p, c) for p, c in figures]
-    h += ["<h2>Accuracy</h2>", f"<p>{html.escape(ACCURACY_NOTE)}</p>"]
+    h += ["<h2>Accuracy</h2>", f"<p>{e(ACCURACY_NOTE)}</p>"]
     for ds in tested:
-        h += [f"<h3>{html.escape(ds)}</h3>", _html_table(*acc[ds])]
+        h += [f"<h3>{_wrap(ds)} <span class='sub'>({e(where.get(ds, renderer_of(config, ds)))})</span></h3>",
+              _html_table(*compact[ds]),
+              _details(f"All figures on {ds}: R² on re-renders, relative error, pooled, order violations",
+                       _html_table(*acc[ds]))]
     if inst_rows:
-        h += ["<h2>Instance estimator</h2>", f"<p>{html.escape(INSTANCE_NOTE)}</p>", _html_table(inst_head, inst_rows)]
-    h += ["<h2>Inference speed</h2>", f"<p>{html.escape(fast_path_rule(bench))}</p>",
-          _html_table(speed_head, speed_rows)]
-    h += [_img_tag(p, c) for p, c in plot_figs]
+        h += ["<h2>Instance estimator</h2>", f"<p>{e(INSTANCE_NOTE)}</p>", _html_table(*inst_compact),
+              _details("All figures: calibrated and raw R², size errors of fully visible particles per method",
+                       _html_table(inst_head, inst_rows))]
+    h += ["<h2>Inference speed</h2>", f"<p>{e(fast_path_rule(bench))}</p>", _html_table(fast_head, fast_rows),
+          _details("Every path measured", _html_table(speed_head, speed_rows))]
+    h += [_img_tag(p, c) for p, c in scatter_figs]
+    h += [_img_tag(p, c, "half") for p, c in curve_figs]
     h += ["<h2>Weights used</h2>", _html_table(["CNN model", "weights"], weights)]
-    h += ["<h2>Configuration</h2>", f"<pre>{html.escape(cfg_yaml)}</pre>", "</body></html>"]
+    h += ["<h2>Configuration</h2>", _details("The configuration of this run (YAML)", f"<pre>{e(cfg_yaml)}</pre>"),
+          "</body></html>"]
     with atomic_path(out_html) as tmp:
         tmp.write_text("\n".join(h))
