@@ -1,0 +1,307 @@
+#!/usr/bin/env python
+"""Run-to-run spread of every model over training seeds.
+
+One training run says little: with the datasets fixed, the same recipe trained with another
+seed reads the same test scenes differently (the instance estimator's read-out, d10 most of all,
+moves by a few hundredths of R²; a CNN across renderers by much more). This script measures that
+spread, so that a figure is quoted as mean ± spread, not as one draw:
+
+1. the datasets are made once: `snakemake scenes` on the config (every scene, manifest and contact
+   sheet; nothing is redone where the results folder already holds them), or, with
+   --no-snakemake, an existing results folder is used as it is;
+2. every architecture of `train.architectures` is trained once per seed, the way rules/train.smk
+   trains it — `psdfactory train --params <train_params(config, arch)>` — with only the params'
+   `seed` changed (the scenes keep the config's seed), into <results>/seed_spread/<seed>/<arch>/;
+3. each model is evaluated as rules/evaluate.smk does (`psdfactory evaluate`, on every dataset the
+   config evaluates: the training dataset's test split, the out-of-distribution set and the
+   Cycles re-render of the test scenes in the default config), into .../<arch>/eval/;
+4. per model, dataset and target, R² and the mean relative error |pred − true| / true over the
+   seeds are printed and written as Markdown (spread.md) and JSON (spread.json) under --out:
+   mean ± half-range, i.e. (max − min) / 2, and [min, max] in the JSON.
+
+A run whose model.pt and metrics.json exist (with the same params) is not redone, so a killed run
+resumes where it stopped (training itself resumes from its checkpoints/last.pt). Progress lines,
+each with the elapsed time and an ETA, go to stdout; each command's own log goes to the run's
+train.log / eval/evaluate.log, Snakemake's to <out>/snakemake.log.
+
+    nice -n 10 .venv/bin/python bench/seed_spread.py                         # config/config.yaml, 3 seeds
+    .venv/bin/python bench/seed_spread.py --seeds 5 --archs instances         # one model, 5 seeds
+    .venv/bin/python bench/seed_spread.py --seed-list 42 7 11 --no-snakemake  # reuse results/ as it is
+
+On 2 CPU cores the default config with 3 seeds takes about an hour: ~8 min of scenes (Cycles
+re-render included, which needs .venv-blender: `make blender`) and ~12 min of training and
+evaluation per seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+NAMES = ("d10", "d50", "d90")
+ARCH_LABELS = {"instances": "instance estimator", "resnet50": "ResNet-50", "inception_v3": "InceptionV3",
+               "efficientnet_b0": "EfficientNet-B0"}
+BACKEND_LABELS = {"tiny": "TinyRenderer", "cycles": "Cycles"}
+
+
+def fmt_time(s: float) -> str:
+    s = max(0, int(round(s)))
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+
+
+class Progress:
+    """Progress lines with the elapsed time and an ETA, estimated per kind of run (an
+    architecture's training, its evaluation) from the runs of that kind done so far."""
+
+    def __init__(self, jobs: list[tuple[str, str]]):
+        self.t0 = time.monotonic()
+        self.jobs = jobs  # (kind, label) in the order they run
+        self.done: dict[str, list[float]] = {}
+        self.next = 0
+
+    def eta(self, current_elapsed: float = 0.0) -> str:
+        left = 0.0
+        unknown = 0
+        all_done = [t for ts in self.done.values() for t in ts]
+        for i, (kind, _) in enumerate(self.jobs[self.next:]):
+            ts = self.done.get(kind)
+            if ts:
+                est = sum(ts) / len(ts)
+                left += max(0.0, est - current_elapsed) if i == 0 else est
+            elif all_done:
+                left += sum(all_done) / len(all_done)
+            else:
+                unknown += 1
+        if unknown == len(self.jobs) - self.next and unknown:
+            return "ETA after the first run"
+        return f"ETA {fmt_time(left)}" + (" (+ runs not yet timed)" if unknown else "")
+
+    def say(self, msg: str, current_elapsed: float = 0.0) -> None:
+        print(f"[{fmt_time(time.monotonic() - self.t0)}] [{self.next + 1}/{len(self.jobs)}] {msg} — "
+              f"{self.eta(current_elapsed)}", flush=True)
+
+    def finish(self, kind: str, seconds: float) -> None:
+        self.done.setdefault(kind, []).append(seconds)
+        self.next += 1
+
+
+def psdfactory_cmd() -> list[str]:
+    exe = Path(sys.executable).with_name("psdfactory")
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "psdfactory.cli"]
+
+
+def make_datasets(config_path: Path, jobs: int, log: Path) -> None:
+    """`snakemake scenes` on the config: every dataset's scenes, manifests and contact sheets.
+    Its output goes to `log`; its 'N of M steps' lines are echoed with an ETA."""
+    snakemake = Path(sys.executable).with_name("snakemake")
+    cmd = [str(snakemake) if snakemake.exists() else "snakemake", f"-j{jobs}", "scenes",
+           "--configfile", str(config_path)]
+    print(f"making the datasets: {' '.join(cmd)} (log: {log})", flush=True)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    last_print = 0.0
+    with open(log, "w", encoding="utf-8") as f:
+        proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            f.write(line)
+            m = re.search(r"(\d+) of (\d+) steps", line)
+            now = time.monotonic()
+            if m and (now - last_print > 30 or m.group(1) == m.group(2)):
+                done, total = int(m.group(1)), int(m.group(2))
+                el = now - t0
+                eta = el / done * (total - done) if done else 0.0
+                print(f"[{fmt_time(el)}] scenes: {done} of {total} jobs — ETA {fmt_time(eta)}", flush=True)
+                last_print = now
+        rc = proc.wait()
+    if rc:
+        sys.exit(f"snakemake failed (exit code {rc}); see {log}")
+    print(f"datasets ready in {fmt_time(time.monotonic() - t0)}", flush=True)
+
+
+def run_watched(cmd: list[str], progress: Progress, label: str, history: Path | None, epochs: int | None) -> float:
+    """Run one command; every minute, a progress line (with the epoch reached, from history.csv)."""
+    t0 = time.monotonic()
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    next_line = t0 + 60
+    while proc.poll() is None:
+        time.sleep(2)
+        if time.monotonic() >= next_line:
+            next_line += 60
+            epoch = ""
+            if history is not None and history.is_file():
+                n = max(0, len(history.read_text(encoding="utf-8").strip().splitlines()) - 1)
+                epoch = f", epoch {n}/{epochs}" if epochs else f", epoch {n}"
+            progress.say(f"{label}: running {fmt_time(time.monotonic() - t0)}{epoch}", time.monotonic() - t0)
+    err = proc.stderr.read() if proc.stderr else ""
+    if proc.returncode:
+        sys.exit(f"{label} failed (exit code {proc.returncode}):\n{err.strip()[-2000:]}\ncommand: {' '.join(cmd)}")
+    return time.monotonic() - t0
+
+
+def aggregate(values: list[float]) -> dict:
+    return {"mean": sum(values) / len(values), "min": min(values), "max": max(values),
+            "half_range": (max(values) - min(values)) / 2, "n": len(values), "values": values}
+
+
+def dataset_label(cfg: dict, ds: str, n_scenes: int | None) -> str:
+    from psdfactory import config as psd_config
+
+    backend = psd_config.dataset_render(cfg, ds)["backend"]
+    label = f"{ds}: {BACKEND_LABELS.get(backend, backend)}"
+    return label + (f", {n_scenes} scenes" if n_scenes else "")
+
+
+def markdown(summary: dict) -> str:
+    """One table: per model and dataset, R² and relative error per target, mean ± half-range."""
+    seeds = summary["seeds"]
+    lines = [f"Per-target R² and mean relative error |pred − true| / true, mean ± (max − min) / 2 over "
+             f"{len(seeds)} training seeds ({', '.join(map(str, seeds))}); `{summary['command']}`, "
+             f"{summary['date'][:10]}, {summary['cpu']}.", "",
+             "| model | test scenes | R² d10 | R² d50 | R² d90 | rel. error d10 | rel. error d50 | rel. error d90 |",
+             "|---|---|---|---|---|---|---|---|"]
+    for arch, per_ds in summary["models"].items():
+        for ds, m in per_ds.items():
+            r2 = [f"{m[n]['r2']['mean']:.2f} ± {m[n]['r2']['half_range']:.2f}" for n in NAMES]
+            rel = [f"{100 * m[n]['rel_err']['mean']:.0f} ± {100 * m[n]['rel_err']['half_range']:.0f} %" for n in NAMES]
+            lines.append(f"| {ARCH_LABELS.get(arch, arch)} | {summary['datasets'][ds]['label']} | "
+                         + " | ".join(r2 + rel) + " |")
+    lines += ["", "Training minutes per run (mean over seeds): "
+              + ", ".join(f"{ARCH_LABELS.get(a, a)} {t:.1f}" for a, t in summary["train_minutes"].items()) + "."]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    from psdfactory import config as psd_config
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--config", default="config/config.yaml", help="the config (default: %(default)s)")
+    ap.add_argument("--seeds", type=int, default=3, help="how many training seeds: the config's seed and the "
+                    "next ones (default: %(default)s)")
+    ap.add_argument("--seed-list", type=int, nargs="+", help="these training seeds instead of --seeds")
+    ap.add_argument("--archs", nargs="+", help="these architectures only (default: the config's train.architectures)")
+    ap.add_argument("--results", help="the results folder (default: the config's `results`)")
+    ap.add_argument("--out", help="folder for spread.md, spread.json and snakemake.log "
+                    "(default: <results>/seed_spread)")
+    ap.add_argument("--no-snakemake", action="store_true", help="use the results folder's datasets as they are")
+    ap.add_argument("--jobs", type=int, default=2, help="snakemake -j for the datasets (default: %(default)s)")
+    ap.add_argument("--threads", type=int, default=os.cpu_count() or 1,
+                    help="threads per training / evaluation (default: all cores, as the workflow's rules)")
+    a = ap.parse_args()
+
+    config_path = Path(a.config).resolve()
+    cfg = psd_config.load_config(config_path)
+    results = Path(a.results or cfg["results"])
+    if not results.is_absolute():
+        results = REPO / results
+    if a.results and Path(a.results).resolve() != (REPO / cfg["results"]).resolve() and not a.no_snakemake:
+        sys.exit("--results differs from the config's `results`: snakemake would make the datasets elsewhere; "
+                 "pass --no-snakemake to use that folder's datasets as they are")
+    out = Path(a.out) if a.out else results / "seed_spread"
+    seeds = a.seed_list or [cfg["seed"] + i for i in range(a.seeds)]
+    if len(set(seeds)) != len(seeds) or len(seeds) < 2:
+        sys.exit(f"need at least two different seeds, got {seeds}")
+    archs = a.archs or list(cfg["train"]["architectures"])
+    datasets = psd_config.evaluation_datasets(cfg)
+    eval_precision = cfg["evaluate"]["precision"]
+    command = "python bench/seed_spread.py " + " ".join(sys.argv[1:])
+    cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                if ln.startswith("model name")), "CPU") if Path("/proc/cpuinfo").is_file() else "CPU"
+    cpu = f"{cpu}, {os.cpu_count()} cores"
+
+    print(f"seeds {seeds}; models {', '.join(archs)}; evaluated on {', '.join(datasets)}; results {results}",
+          flush=True)
+    if not a.no_snakemake:
+        make_datasets(config_path, a.jobs, out / "snakemake.log")
+    missing = [d for d in {*datasets, *cfg["train"]["datasets"]} if not (results / d / "manifest" / "scenes").is_dir()]
+    if missing:
+        sys.exit(f"no manifests for {', '.join(sorted(missing))} under {results}: run without --no-snakemake")
+
+    jobs = [(kind, f"seed {s} {arch}") for s in seeds for arch in archs for kind in (f"train {arch}", f"eval {arch}")]
+    progress = Progress(jobs)
+    psd = psdfactory_cmd()
+    metrics: dict = {}  # arch -> seed -> metrics.json
+    train_minutes: dict = {}
+    for seed in seeds:
+        for arch in archs:
+            run = results / "seed_spread" / str(seed) / arch
+            run.mkdir(parents=True, exist_ok=True)
+            params = psd_config.train_params(cfg, arch)
+            params["seed"] = seed
+            pjson = json.dumps(params, sort_keys=True, separators=(",", ":"))
+            stamp = run / "params.json"
+            same = stamp.is_file() and stamp.read_text(encoding="utf-8") == pjson
+            if not same and (run / "model.pt").exists():  # another recipe's model: train anew
+                for p in (run / "model.pt", run / "history.csv", run / "eval"):
+                    shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
+                shutil.rmtree(run / "checkpoints", ignore_errors=True)
+            stamp.write_text(pjson, encoding="utf-8")
+            label = f"seed {seed} {ARCH_LABELS.get(arch, arch)}"
+            info = run / "run.json"
+            timing = json.loads(info.read_text(encoding="utf-8")) if info.is_file() else {}
+            if (run / "model.pt").is_file():
+                progress.say(f"{label}: trained before, kept")
+                progress.finish(f"train {arch}", timing.get("train_s", 0.0))
+            else:
+                progress.say(f"{label}: training ({params['epochs']} epochs)")
+                cmd = [*psd, "--log", str(run / "train.log"), "train", "--params", pjson, "--results", str(results),
+                       "--out-dir", str(run), "--threads", str(a.threads)]
+                timing["train_s"] = run_watched(cmd, progress, label, run / "history.csv", params["epochs"])
+                info.write_text(json.dumps(timing), encoding="utf-8")
+                progress.finish(f"train {arch}", timing["train_s"])
+            ev = run / "eval"
+            if (ev / "metrics.json").is_file():
+                progress.say(f"{label}: evaluated before, kept")
+                progress.finish(f"eval {arch}", timing.get("eval_s", 0.0))
+            else:
+                progress.say(f"{label}: evaluating on {', '.join(datasets)}")
+                ev.mkdir(exist_ok=True)
+                ep = json.dumps({"datasets": datasets, "precision": eval_precision, "arch": arch})
+                cmd = [*psd, "--log", str(ev / "evaluate.log"), "evaluate", "--params", ep, "--model",
+                       str(run / "model.pt"), "--results", str(results), "--out-dir", str(ev), "--history",
+                       str(run / "history.csv"), "--threads", str(a.threads)]
+                timing["eval_s"] = run_watched(cmd, progress, label, None, None)
+                info.write_text(json.dumps(timing), encoding="utf-8")
+                progress.finish(f"eval {arch}", timing["eval_s"])
+            m = json.loads((ev / "metrics.json").read_text(encoding="utf-8"))
+            metrics.setdefault(arch, {})[seed] = m
+            train_minutes.setdefault(arch, []).append(timing.get("train_s", 0.0) / 60)
+            r = m["datasets"]
+            print("    " + "; ".join(f"{d}: R² " + " / ".join(f"{r[d][n]['r2']:.3f}" for n in NAMES)
+                                     for d in datasets if d in r), flush=True)
+
+    summary: dict = {"config": str(Path(a.config)), "seeds": seeds, "command": command,
+                     "date": datetime.now(UTC).isoformat(timespec="seconds"), "cpu": cpu,
+                     "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
+                                              text=True).stdout.strip(),
+                     "statistic": "mean, min, max and half_range = (max - min) / 2 over the seeds",
+                     "datasets": {}, "models": {},
+                     "train_minutes": {arch: sum(t) / len(t) for arch, t in train_minutes.items()}}
+    for arch in archs:
+        per_ds: dict = {}
+        for ds in datasets:
+            runs = [metrics[arch][s]["datasets"][ds] for s in seeds if ds in metrics[arch][s]["datasets"]]
+            if not runs:
+                continue
+            summary["datasets"].setdefault(ds, {"n_scenes": runs[0]["n"],
+                                                "label": dataset_label(cfg, ds, runs[0]["n"])})
+            per_ds[ds] = {n: {k: aggregate([r[n][k] for r in runs]) for k in ("r2", "rel_err")} for n in NAMES}
+        summary["models"][arch] = per_ds
+    out.mkdir(parents=True, exist_ok=True)
+    md = markdown(summary)
+    (out / "spread.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")
+    (out / "spread.md").write_text(md, encoding="utf-8")
+    print(f"\n{md}\nwritten: {out / 'spread.md'}, {out / 'spread.json'}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
