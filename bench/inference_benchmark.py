@@ -23,9 +23,11 @@ import torch
 
 from psdfactory.cli import configure_logging
 from psdfactory.config import default_input_size
-from psdfactory.deploy.benchmark import benchmark, benchmark_model
+from psdfactory.deploy.benchmark import benchmark, benchmark_estimator
 from psdfactory.learn.capability import detect
+from psdfactory.learn.cnn import CnnRegressor
 from psdfactory.learn.models import TargetStats, build_model
+from psdfactory.learn.runtime import torch_runner
 
 PAPER_CPU_FPS = {"resnet50": 14.66, "inception_v3": 12.00, "efficientnet_b0": 21.51}  # Ryzen 7 5800H, 8 cores
 
@@ -50,7 +52,10 @@ def main() -> None:
         size = default_input_size(arch)
         model, _ = build_model(arch, stats, "none", size=size)
         print(f"{arch} at {size} px:")
-        r = benchmark_model(model.eval(), {"input_size": size}, dev, None, None, a.batch, a.seconds, a.repeats)
+        meta = {"arch": arch, "input_size": size, "image_resolution": size, "mm_per_px": 1.0}
+        est = CnnRegressor(meta, None, model.eval())
+        est.run = torch_runner(est.inference_module(), dev)
+        r = benchmark_estimator(est, dev, None, None, a.batch, a.seconds, a.repeats)
         out[arch] = r
         if a.results:
             mp = Path(a.results) / "models" / arch / "model.pt"

@@ -35,7 +35,7 @@ def stats_of(est, rows: list[dict], root: Path, batch: int = 8) -> np.ndarray:
     for i in range(0, len(rows), batch):
         chunk = rows[i : i + batch]
         images = torch.stack([to_input(read_png(root / r["image_path"]), None) for r in chunk])
-        maps = est.maps(images)
+        maps = est.outputs(images)
         out += [est.analyse_maps(m, float(r["mm_per_px"])).stats for m, r in zip(maps, chunk, strict=True)]
     return np.stack(out)
 
@@ -45,13 +45,15 @@ def main() -> None:
 
     from psdfactory import config as psd_config
     from psdfactory.cli import configure_logging
+    from psdfactory.learn.augment import TTA_VIEWS
     from psdfactory.learn.ceiling import dataset_ceilings_from_config
     from psdfactory.learn.data import targets, training_rows
     from psdfactory.learn.evaluate import eval_rows
-    from psdfactory.learn.instances import READOUTS, TTA_VIEWS, InstanceEstimator, torch_maps_fn
+    from psdfactory.learn.instances.estimator import InstanceEstimator
+    from psdfactory.learn.instances.stats import READOUTS
     from psdfactory.learn.metrics import r2_scores
     from psdfactory.learn.readout import apply_readout, fit_readout
-    from psdfactory.learn.runtime import load_model
+    from psdfactory.learn.runtime import load_estimator
     from psdfactory.psd import NAMES, TARGETS
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -69,8 +71,9 @@ def main() -> None:
         torch.set_num_threads(a.threads)
     cfg = psd_config.load_config(Path(a.config))
     root = Path(a.results or cfg["results"])
-    model, meta = load_model(Path(a.model))
-    if meta.get("arch") != "instances":
+    loaded = load_estimator(Path(a.model))
+    meta = loaded.meta
+    if not isinstance(loaded, InstanceEstimator):
         raise SystemExit(f"{a.model} is a {meta.get('arch')} model, not the instance estimator")
     datasets = a.datasets or psd_config.evaluation_datasets(cfg)
     train_rows, val_rows, _ = training_rows(root, meta["params"]["datasets"])
@@ -84,7 +87,7 @@ def main() -> None:
     out = {"model": str(a.model), "trained_with": {k: meta.get(k) for k in ("readout_features", "tta")},
            "ceilings": ceilings, "rows": []}
     for tta in a.tta or [meta.get("tta", "none")]:
-        est = InstanceEstimator(torch_maps_fn(model), {**meta, "tta": tta})
+        est = InstanceEstimator({**meta, "tta": tta}, loaded.run, loaded.net)
         t0 = time.perf_counter()
         fit_x = {"train": stats_of(est, train_rows, root)}
         fit_x["train+val"] = np.concatenate([fit_x["train"], stats_of(est, val_rows, root)])

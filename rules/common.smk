@@ -14,6 +14,7 @@ from psdfactory import PsdError
 from psdfactory import config as psd_config
 from psdfactory import preflight as psd_preflight
 from psdfactory import runlock as psd_runlock
+from psdfactory.learn.registry import check_architectures
 from psdfactory.manifest import shard_name
 from psdfactory.scene import stages as psd_stages
 from psdfactory.scene.stages import STAGES
@@ -81,7 +82,7 @@ def preflight():
     Cycles. Looks only, changes nothing: a dry run checks the same."""
     try:
         psd_preflight.check_results(RESULTS)
-        psd_preflight.check_architectures(config["train"]["architectures"])
+        check_architectures(config["train"]["architectures"])
         psd_preflight.check_slurm(profile_resources(), os.environ, getpass.getuser())
     except PsdError as e:
         raise WorkflowError(f"psdfactory: {e}") from None

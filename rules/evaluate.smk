@@ -3,8 +3,8 @@ rule evaluate:
         model=f"{RESULTS}/models/{{arch}}/model.pt",
         history=f"{RESULTS}/models/{{arch}}/history.csv",
         manifests=shards_of(EVALUATED, "scenes"),
-        # the instance estimator also scores each matched particle against its true sieve size
-        particles=lambda wildcards: shards_of(EVALUATED, "particles") if wildcards.arch == "instances" else [],
+        # an estimator's scorer may read them (the instance estimator scores each matched grain's size)
+        particles=shards_of(EVALUATED, "particles"),
     output:
         metrics=f"{RESULTS}/eval/{{arch}}/metrics.json",
         predictions=f"{RESULTS}/eval/{{arch}}/predictions.csv",

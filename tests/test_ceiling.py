@@ -12,8 +12,8 @@ from psdfactory.learn.ceiling import (
     scene_footprints,
     visible_features,
 )
+from psdfactory.learn.instances.stats import STAT_NAMES
 from psdfactory.learn.metrics import cross_validated_r2
-from psdfactory.learn.particles import STAT_NAMES
 from psdfactory.psd import TARGETS, weighted_percentiles
 
 

@@ -109,7 +109,7 @@ def test_the_default_results_root_is_fine():
 
 
 def test_an_unknown_architecture_is_refused_before_any_scene(tmp_path, capsys):
-    from psdfactory.preflight import check_architectures
+    from psdfactory.learn.registry import check_architectures
 
     check_architectures(["instances"], known=lambda: set())  # never asks torchvision
     check_architectures(["resnet50", "instances"], known=lambda: {"resnet50", "resnet18"})

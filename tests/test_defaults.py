@@ -16,7 +16,7 @@ import yaml
 
 from psdfactory import PsdError
 from psdfactory import config as psd_config
-from psdfactory.learn.instances import InstanceSettings
+from psdfactory.learn.instances.training import InstanceSettings
 from psdfactory.learn.train import TrainParams
 from psdfactory.scene.labels import LabelParams
 from psdfactory.scene.physics import PhysicsParams, QualityBounds
@@ -159,7 +159,7 @@ def test_the_validated_defaults_build_every_dataclass_with_the_schemas_values():
         RenderParams: RenderParams.from_dict(psd_config.compare_params(cfg)),  # the Cycles settings too
         LabelParams: LabelParams.from_dict(psd_config.label_params(cfg)),
         TrainParams: TrainParams.from_dict(psd_config.train_params(cfg, "resnet50")),
-        InstanceSettings: InstanceSettings.from_dict(psd_config.train_params(cfg, "instances")["instances"]),
+        InstanceSettings: InstanceSettings.from_dict(psd_config.train_params(cfg, "instances")["settings"]),
         SampleParams: SampleParams.from_dict(psd_config.sample_params(cfg, "train", 3)),
     }
     for cls, path, flatten, _, elsewhere in CASES:

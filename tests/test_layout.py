@@ -65,7 +65,7 @@ def graph() -> dict[str, set[str]]:
 
 def test_the_graph_sees_the_imports():
     g = graph()
-    assert "psdfactory.learn.runtime" in g["psdfactory.learn.train"]
+    assert "psdfactory.learn.runtime" in g["psdfactory.learn.cnn"]
     assert "psdfactory.scene.render.cycles" in g["psdfactory.scene.show"]  # a lazy import
     assert "psdfactory" in g["psdfactory.io"]  # PsdError
 

@@ -1,4 +1,5 @@
-"""Known-answer tests of the per-particle measurement core (psdfactory.learn.particles)."""
+"""Known-answer tests of the per-particle measurement core (psdfactory.learn.instances: measure,
+watershed, stats, scoring, draw)."""
 
 from __future__ import annotations
 
@@ -6,24 +7,22 @@ import numpy as np
 import pytest
 
 from psdfactory import PsdError
-from psdfactory.psd import cumulative_curve, weighted_percentiles
-from psdfactory.learn.particles import (
+from psdfactory.learn.instances.draw import draw_overlay, instance_outlines
+from psdfactory.learn.instances.measure import (
     SIEVE_METHODS,
-    STAT_NAMES,
     THICKNESS_RATIO,
-    draw_overlay,
     feret_diameters_px,
-    instance_outlines,
-    instance_stats,
-    match_instances,
     measure_instances,
-    psd_from_instances,
     sieve_size,
-    split_instances,
 )
+from psdfactory.learn.instances.scoring import match_instances
+from psdfactory.learn.instances.stats import STAT_NAMES, instance_stats, psd_from_instances
+from psdfactory.learn.instances.watershed import split_instances
+from psdfactory.psd import cumulative_curve, weighted_percentiles
 
 
-def paint_ellipse(mask: np.ndarray, k: int, centre: tuple[float, float], a: float, b: float, angle_deg: float = 0.0) -> None:
+def paint_ellipse(mask: np.ndarray, k: int, centre: tuple[float, float], a: float, b: float,
+                  angle_deg: float = 0.0) -> None:
     """Set to k every pixel whose centre (r, c) lies in the ellipse (semi-axes a along the
     rotated x axis, b across it)."""
     r, c = np.indices(mask.shape)
@@ -33,7 +32,8 @@ def paint_ellipse(mask: np.ndarray, k: int, centre: tuple[float, float], a: floa
     mask[(u / a) ** 2 + (v / b) ** 2 <= 1] = k
 
 
-def paint_rectangle(mask: np.ndarray, k: int, centre: tuple[float, float], length: float, width: float, angle_deg: float) -> None:
+def paint_rectangle(mask: np.ndarray, k: int, centre: tuple[float, float], length: float, width: float,
+                    angle_deg: float) -> None:
     r, c = np.indices(mask.shape)
     t = np.deg2rad(angle_deg)
     x, y = c - centre[1], r - centre[0]
@@ -119,7 +119,7 @@ def test_feret_of_irregular_instances_matches_brute_force():
     mask[np.isin(mask, [3, 4])] = 3  # one instance in two separate cells
     ids, fmin, fmax = feret_diameters_px(mask)
     assert len(ids) >= 20
-    for k, a, b in zip(ids, fmin, fmax):
+    for k, a, b in zip(ids, fmin, fmax, strict=True):
         bmin, bmax = brute_force_feret(mask, k, n_angles=3600)
         assert bmin - 0.05 <= a <= bmin + 1e-9, k
         assert bmax - 1e-9 <= b <= bmax + 0.05, k
@@ -170,7 +170,8 @@ def test_touches_edge():
     mask[5:10, 5:10] = 4  # interior
     mask[1:4, 20:24] = 5  # one pixel off the border
     m = measure_instances(mask, 1.0)
-    assert dict(zip(m.ids.tolist(), m.touches_edge.tolist())) == {1: True, 2: True, 3: True, 4: False, 5: False}
+    edge = dict(zip(m.ids.tolist(), m.touches_edge.tolist(), strict=True))
+    assert edge == {1: True, 2: True, 3: True, 4: False, 5: False}
 
 
 def test_volume_is_an_ellipsoid_on_the_footprint():
@@ -247,16 +248,17 @@ def test_instance_stats(shapes_mask):
     m = measure_instances(shapes_mask, MM)
     st = instance_stats(m)
     assert st.shape == (len(STAT_NAMES),)
-    got = dict(zip(STAT_NAMES, st))
+    got = dict(zip(STAT_NAMES, st, strict=True))
     # a mask alone has no size map: its statistics are NaN, every other one is finite
     assert all(np.isnan(got[k]) == k.startswith("map_") for k in STAT_NAMES)
-    np.testing.assert_allclose([got["d10_mm"], got["d50_mm"], got["d90_mm"]], weighted_percentiles(m.min_feret_mm, None))
+    np.testing.assert_allclose([got["d10_mm"], got["d50_mm"], got["d90_mm"]],
+                               weighted_percentiles(m.min_feret_mm, None))
 
     # with a size map (px of the particle each pixel belongs to): the same statistics of its
     # median per instance, beside the footprints' (which it does not change)
     size_px = np.where(shapes_mask > 0, 3.0 * shapes_mask, 0.0)
     mm = measure_instances(shapes_mask, MM, size_map_px=size_px)
-    got_map = dict(zip(STAT_NAMES, instance_stats(mm)))
+    got_map = dict(zip(STAT_NAMES, instance_stats(mm), strict=True))
     assert np.isfinite(list(got_map.values())).all()
     np.testing.assert_allclose([got_map["map_d10_mm"], got_map["map_d50_mm"], got_map["map_d90_mm"]],
                                weighted_percentiles(3.0 * m.ids * MM, None))
@@ -270,7 +272,7 @@ def test_instance_stats(shapes_mask):
     # edge instances: excluded from the sizes, counted in the edge fraction
     mask = shapes_mask.copy()
     mask[0:40, 160:200] = 99
-    got = dict(zip(STAT_NAMES, instance_stats(measure_instances(mask, MM))))
+    got = dict(zip(STAT_NAMES, instance_stats(measure_instances(mask, MM)), strict=True))
     assert got["edge_fraction"] == pytest.approx(1 / 5)
     assert got["log_density"] == pytest.approx(np.log1p(4 / cm2))
     assert got["log_density_all"] == pytest.approx(np.log1p(5 / cm2))
@@ -278,28 +280,29 @@ def test_instance_stats(shapes_mask):
 
     # nothing to measure: NaN sizes (or the fill value), never an exception
     empty = measure_instances(np.zeros((16, 16), dtype=np.uint16), MM)
-    st = dict(zip(STAT_NAMES, instance_stats(empty)))
-    assert np.isnan(st["d50_mm"]) and st["log_density"] == 0.0 and st["covered_fraction"] == 0.0 and st["edge_fraction"] == 0.0
+    st = dict(zip(STAT_NAMES, instance_stats(empty), strict=True))
+    assert np.isnan(st["d50_mm"]) and st["log_density"] == 0.0
+    assert st["covered_fraction"] == 0.0 and st["edge_fraction"] == 0.0
     assert np.isfinite(instance_stats(empty, fill_value=0.0)).all()
     # everything touches the edge: sizes fall back to all instances
     edge_only = np.zeros((16, 16), dtype=np.uint16)
     edge_only[0:4, 0:4] = 1
-    st = dict(zip(STAT_NAMES, instance_stats(measure_instances(edge_only, 1.0))))
+    st = dict(zip(STAT_NAMES, instance_stats(measure_instances(edge_only, 1.0)), strict=True))
     assert st["d50_mm"] == pytest.approx(4.0) and st["edge_fraction"] == 1.0
 
 
 def test_stats_of_a_tiled_bed_do_not_change_with_the_field_of_view(shapes_mask):
     """The read-out's counts and coverage are the same for a view of four times the area of the
     same bed (its percentiles too, up to the interpolation between fewer samples)."""
-    from psdfactory.learn.particles import READOUT_FEATURES
+    from psdfactory.learn.instances.stats import READOUT_FEATURES
 
     one = measure_instances(shapes_mask, MM)
     tiled = shapes_mask.astype(np.int64).copy()
     big = np.block([[tiled, tiled + 100], [tiled + 200, tiled + 300]])
     big[big % 100 == 0] = 0
     four = measure_instances(big.astype(np.uint16), MM)
-    a = dict(zip(STAT_NAMES, instance_stats(one)))
-    b = dict(zip(STAT_NAMES, instance_stats(four)))
+    a = dict(zip(STAT_NAMES, instance_stats(one), strict=True))
+    b = dict(zip(STAT_NAMES, instance_stats(four), strict=True))
     assert {"log_density", "log_density_all", "covered_fraction"} <= set(READOUT_FEATURES)
     assert not {"edge_fraction", "mm_per_px"} & set(READOUT_FEATURES)
     for k in ("mean_mm", "std_mm", "log_density", "log_density_all", "covered_fraction"):
@@ -361,7 +364,8 @@ def test_split_with_boundary_or_distance_maps():
     # the foreground alone cannot tell them apart at a large h
     assert split_instances(fg, h=5.0).max() == 1
     # a predicted boundary between them can
-    boundary = (instance_outlines(true) & (np.roll(true, 1, axis=1) != true) & (np.roll(true, 1, axis=1) > 0)).astype(float)
+    shifted = np.roll(true, 1, axis=1)
+    boundary = (instance_outlines(true) & (shifted != true) & (shifted > 0)).astype(float)
     boundary = np.maximum(boundary, np.roll(boundary, -1, axis=1))
     pred = split_instances(fg, boundary_prob=boundary, h=2.0)
     assert pred.max() == 2 and match_instances(pred, true, iou=0.8).n_matched == 2

@@ -232,6 +232,7 @@ STUB = """
 import time
 import numpy as np
 from psdfactory.deploy import predict
+from psdfactory.learn.cnn import CnnRegressor
 
 META = {meta!r}
 
@@ -240,7 +241,7 @@ def load_predictor(model_path, device="cpu"):
         time.sleep({sleep})
         m = float(x.mean())
         return np.array([[m, m + 1.0, m + 2.0]])
-    return run, META
+    return CnnRegressor(META, run)
 """
 INSTALL_STUB = "predict.load_predictor = load_predictor\n"
 
@@ -251,8 +252,10 @@ def stub_predictor(monkeypatch, calls: list):
     inner = ns["load_predictor"]
 
     def counting(model_path, device="cpu"):
-        run, meta = inner(model_path, device)
-        return (lambda x: calls.append(1) or run(x)), meta
+        est = inner(model_path, device)
+        run = est.run
+        est.run = lambda x: calls.append(1) or run(x)
+        return est
 
     from psdfactory.deploy import predict
 

@@ -2,6 +2,9 @@
 
 import json
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
@@ -15,6 +18,7 @@ HAS_BLENDER = DEFAULT_PYTHON.is_file() or os.environ.get("PSD_BLENDER_PYTHON") o
 COMPARE = 2 if HAS_BLENDER else 0
 
 pytestmark = pytest.mark.workflow
+PLUGINS = Path(__file__).parent / "plugins"
 
 TINY = {
     "seed": 7,  # gives the 5 train scenes 2 train / 2 val / 1 test
@@ -36,8 +40,10 @@ TINY = {
     "train": {
         "epochs": 1, "batch_size": 2, "precision": "fp32", "pretrained": "none",
         "lr_schedule": "onecycle", "size_cells": 1.0,  # the default config's recipe
-        "architectures": ["resnet50", "inception_v3", "efficientnet_b0", "instances"],
-        "input_size": {"resnet50": 32, "inception_v3": 75, "efficientnet_b0": 32, "instances": 32},
+        # the paper's three CNNs, the instance estimator, and a third kind from an outside package
+        # (tests/plugins: declared in the psdfactory.estimators entry-point group, on PYTHONPATH)
+        "architectures": ["resnet50", "inception_v3", "efficientnet_b0", "instances", "meancolour"],
+        "input_size": {"resnet50": 32, "inception_v3": 75, "efficientnet_b0": 32, "instances": 32, "meancolour": 32},
         "instances": {"readout": "footprints+size_map"},  # the default config's read-out
     },
     "benchmark": {"batch_size": 2, "seconds": 0.05, "repeats": 1},
@@ -48,8 +54,8 @@ TINY = {
 def test_tiny_workflow_end_to_end(tmp_path):
     cfgfile = write_config(tmp_path / "tiny.yaml", dict(TINY, results=str(tmp_path / "results")))
     # PyTorch's portable path, as on a CPU without AVX-512/bf16/VNNI: the run must not care
-    r = snakemake("-j2", "--configfile", str(cfgfile), workdir=tmp_path,
-                  env={**os.environ, "ATEN_CPU_CAPABILITY": "avx2"})
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(PLUGINS), os.environ.get("PYTHONPATH")]))}
+    r = snakemake("-j2", "--configfile", str(cfgfile), workdir=tmp_path, env={**env, "ATEN_CPU_CAPABILITY": "avx2"})
     assert r.returncode == 0, r.stderr[-3000:]
     res = tmp_path / "results"
     scenes = pq.read_table(res / "train" / "manifest" / "scenes")
@@ -90,9 +96,24 @@ def test_tiny_workflow_end_to_end(tmp_path):
     assert set(metrics["datasets"]) == {"train", "ood", "again"}
     assert all("f1" in m["segmentation"] and "raw" in m for m in metrics["datasets"].values())
     bench = json.loads((res / "bench" / "instances.json").read_text())
-    assert bench["results"][0]["paths"]["fast"]["name"] == "fp32 eager + watershed"
+    assert {"fp32", "channels_last", "fast"} <= set(bench["results"][0]["paths"])
+    # the plug-in estimator: trained, evaluated, benchmarked and reported like the built-in ones
+    metrics = json.loads((res / "eval" / "meancolour" / "metrics.json").read_text())
+    assert metrics["arch"] == "meancolour" and set(metrics["datasets"]) == {"train", "ood", "again"}
+    assert (res / "bench" / "meancolour.json").is_file()
     html = (res / "report" / "report.html").read_text()
     assert "Inference speed" in html and "efficientnet_b0" in html and "Instance estimator" in html
+    assert "meancolour" in html
+    # and users predict with it and export it through the CLI
+    image = str(res / "train" / "scenes" / "train-000000" / "image.png")
+    model = str(res / "models" / "meancolour" / "model.pt")
+    cli = [sys.executable, "-m", "psdfactory.cli"]
+    p = subprocess.run([*cli, "predict", "--model", model, "--out", str(tmp_path / "p.csv"), image], env=env,
+                       capture_output=True, text=True)
+    assert p.returncode == 0 and "meancolour" in p.stderr, p.stderr[-2000:]
+    p = subprocess.run([*cli, "export", "--model", model, "--out-dir", str(tmp_path / "exp")], env=env,
+                       capture_output=True, text=True)
+    assert p.returncode == 0 and (tmp_path / "exp" / "model.onnx").is_file(), p.stderr[-2000:]
     assert f"R² d50 on {'Cycles' if COMPARE else 'TinyRenderer'} (again) renders" in html
     if COMPARE:
         rows = json.loads((res / "report" / "backends" / "compare.json").read_text())["scenes"]
@@ -100,7 +121,7 @@ def test_tiny_workflow_end_to_end(tmp_path):
         assert all(r["mask_agreement_off_edges"] > 0.99 for r in rows)
         assert "TinyRenderer and Blender Cycles" in html
     # a second run has nothing to do
-    r = snakemake("-n", "--configfile", str(cfgfile), workdir=tmp_path)
+    r = snakemake("-n", "--configfile", str(cfgfile), workdir=tmp_path, env=env)
     assert r.returncode == 0 and "Nothing to be done" in r.stdout + r.stderr
 
 

@@ -69,7 +69,7 @@ def cmd_compare_backends(a: argparse.Namespace) -> None:
 
 def cmd_check_config(a: argparse.Namespace) -> None:
     from .config import load_config
-    from .preflight import check_architectures
+    from .learn.registry import check_architectures
 
     cfg = load_config(Path(a.configfile))
     try:
@@ -411,6 +411,14 @@ class _Parser(argparse.ArgumentParser):
         return ns
 
 
+def _job_args(p: argparse.ArgumentParser, params_help: str, model_help: str | None = None) -> None:
+    """--params, --model (with `model_help`) and --results: what a training-side job takes."""
+    p.add_argument("--params", required=True, metavar="JSON", help=params_help)
+    if model_help:
+        p.add_argument("--model", required=True, metavar="FILE", help=model_help)
+    p.add_argument("--results", required=True, metavar="DIR", help="the results root holding the datasets")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = _Parser(prog="psdfactory", usage="psdfactory [-h] [--version] [-q | -v] [--log FILE] <command> ...",
                  description=_text(DESCRIPTION) + "\n\n" + _command_list(), epilog=_examples(None))
@@ -543,18 +551,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     threads = "PyTorch's CPU threads, 0 for PyTorch's own choice"
     p = workflow("train")
-    p.add_argument("--params", required=True, metavar="JSON",
-                   help="training settings as JSON (see learn.train.TrainParams)")
-    p.add_argument("--results", required=True, metavar="DIR", help="the results root holding the datasets")
+    _job_args(p, "training settings as JSON (see learn.train.TrainParams)")
     p.add_argument("--out-dir", required=True, metavar="DIR",
                    help="the model's folder: model.pt, history.csv, TensorBoard logs")
     p.add_argument("--threads", type=int, default=0, metavar="N", help=threads)
     p.set_defaults(func=cmd_train)
 
     p = workflow("evaluate")
-    p.add_argument("--params", required=True, metavar="JSON", help='JSON: {"datasets": [...], "precision": "fp32"}')
-    p.add_argument("--model", required=True, metavar="FILE", help="the model.pt to evaluate")
-    p.add_argument("--results", required=True, metavar="DIR", help="the results root holding the datasets")
+    _job_args(p, 'JSON: {"datasets": [...], "precision": "fp32"}', "the model.pt to evaluate")
     p.add_argument("--out-dir", required=True, metavar="DIR",
                    help="gets metrics.json, predictions.csv, scatter.png and loss_curve.png")
     p.add_argument("--history", metavar="CSV", help="history.csv to plot the loss curves of")
@@ -562,10 +566,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_evaluate)
 
     p = workflow("benchmark")
-    p.add_argument("--params", required=True, metavar="JSON",
-                   help='JSON: {"dataset", "batch_size", "seconds", "repeats"}')
-    p.add_argument("--model", required=True, metavar="FILE", help="the model.pt to time")
-    p.add_argument("--results", required=True, metavar="DIR", help="the results root holding the dataset")
+    _job_args(p, 'JSON: {"dataset", "batch_size", "seconds", "repeats"}', "the model.pt to time")
     p.add_argument("--out", required=True, metavar="FILE", help="the benchmark's JSON to write")
     p.add_argument("--threads", type=int, default=0, metavar="N", help=threads)
     p.set_defaults(func=cmd_benchmark)

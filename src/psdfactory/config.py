@@ -571,10 +571,10 @@ def train_params(config: dict, arch: str) -> dict:
     out = {k: t[k] for k in keys}
     size = t["input_size"].get(arch, default_input_size(arch))
     out.update(arch=arch, seed=config["seed"], input_size=int(size))
-    if arch == "instances":  # only its own slice: editing train.instances retrains no CNN
-        out["instances"] = copy.deepcopy(t["instances"])
-        epochs = out["instances"].pop("epochs", None)
-        if epochs is not None:  # its own length (train.instances.epochs) overrides train.epochs
+    if isinstance(t.get(arch), dict):  # an estimator's own settings, train.<arch>: only its slice has
+        out["settings"] = copy.deepcopy(t[arch])  # them (editing train.instances retrains no CNN)
+        epochs = out["settings"].pop("epochs", None)
+        if epochs is not None:  # its own length (train.<arch>.epochs) overrides train.epochs
             out["epochs"] = int(epochs)
     return out
 

@@ -110,3 +110,25 @@ def read_scenes(results_root: Path, dataset: str) -> pa.Table:
     import pyarrow.parquet as pq
 
     return pq.read_table(path)
+
+
+def group_by_scene(table: pa.Table, columns: list[str] | tuple[str, ...]) -> dict:
+    """scene_id → {column: numpy array of that scene's rows} of a particle table."""
+    import numpy as np
+
+    ids = np.asarray(table.column("scene_id").to_pylist())
+    cols = {k: np.asarray(table.column(k)) for k in columns}
+    order = np.argsort(ids, kind="stable")
+    uniq, start = np.unique(ids[order], return_index=True)
+    return {str(u): {k: v[g] for k, v in cols.items()} for u, g in zip(uniq, np.split(order, start[1:]), strict=True)}
+
+
+def read_particles(results_root: Path, dataset: str, columns: tuple[str, ...] = ("particle_id", "size_mm", "z_mm")
+                   ) -> dict:
+    """scene_id → {column: array} from a dataset's particle manifest."""
+    import pyarrow.parquet as pq
+
+    path = Path(results_root) / dataset / "manifest" / "particles"
+    if not path.is_dir():
+        raise PsdError(f"no particle manifest at {path}")
+    return group_by_scene(pq.read_table(path, columns=["scene_id", *columns]), columns)

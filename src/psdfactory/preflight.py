@@ -145,26 +145,3 @@ def check_slurm(resources: Resources, env: Mapping[str, str], user: str,
         raise PsdError("\n".join(problems))
 
 
-# ---- the estimators --------------------------------------------------------------------------
-
-def check_architectures(archs: list[str], known: Callable[[], set[str]] | None = None) -> None:
-    """Every `train.architectures` entry is an estimator this package can train: `instances`, or a
-    torchvision classification model. `known()` → the torchvision names (by default torchvision's
-    own registry, imported only here: the scene jobs never pay for it)."""
-    others = [a for a in archs if a != "instances"]
-    if not others:
-        return
-    if known is None:
-        def known() -> set[str]:
-            try:
-                import torchvision
-            except ImportError:
-                return set(others)  # a scenes-only install: the training jobs will say what is missing
-            return set(torchvision.models.list_models(module=torchvision.models))
-    names = known()
-    bad = [a for a in others if a not in names]
-    if bad:
-        close = {b: sorted(n for n in names if n.startswith(b[:4]))[:4] for b in bad}
-        hint = "; ".join(f"{b}: e.g. {', '.join(c)}" for b, c in close.items() if c)
-        raise PsdError(f"train.architectures: {', '.join(map(repr, bad))} not an estimator psdfactory can train "
-                       f"(instances, or a torchvision classification model{'; ' + hint if hint else ''})")

@@ -455,19 +455,10 @@ def instance_table(metrics: dict[str, dict], datasets: list[str]) -> tuple[list[
     def pct(e: dict | None) -> str:
         return MISSING if not e or not e.get("n") else f"{100 * e['median']:.1f} % / {100 * e['p90']:.1f} %"
 
-    for arch, m in metrics.items():
-        for ds in datasets:
-            d = m["datasets"].get(ds)
-            if not d or "segmentation" not in d:
-                continue
-            seg, se = d["segmentation"], d["size_error"]
-            matched = se["matched"][se["method"]]
-            vis = se.get("matched_fully_visible", {})
-            rows.append([arch, ds] + [_fmt(d[n]["r2"], 3) for n in NAMES] + [_fmt(d["raw"][n]["r2"], 3) for n in NAMES]
-                        + [_fmt(seg["precision"], 3), _fmt(seg["recall"], 3), _fmt(seg["f1"], 3),
-                           MISSING if not matched["n"] else f"{100 * matched['median']:.1f} %",
-                           MISSING if not matched["n"] else f"{100 * matched['p90']:.1f} %",
-                           *(pct(vis.get(meth)) for meth in methods)])
+    for arch, ds, d in _segmented(metrics, datasets):
+        vis = d["size_error"].get("matched_fully_visible", {})
+        rows.append([arch, ds] + [_fmt(d[n]["r2"], 3) for n in NAMES] + [_fmt(d["raw"][n]["r2"], 3) for n in NAMES]
+                    + _segmentation_cells(d) + [pct(vis.get(meth)) for meth in methods])
     return head, rows
 
 
@@ -496,41 +487,48 @@ def fast_path_rule(bench: dict[str, dict]) -> str:
     return text
 
 
+SPEED_HEAD = ["device", "input (px)", "batch 1 (img/s)", "batched (img/s)", "ms / image (batched)",
+              "vs fp32 (batched)", "R² change vs fp32", "parameters (M)", "GFLOPs"]
+
+
+def _speed_row(arch: str, r: dict, name: str, p: dict) -> list[str]:
+    base, change = r["paths"]["fp32"]["batched"]["images_per_s"], p.get("r2_change")
+    return [arch, name, r["device"], str(r["input_size"]), _fmt(p["batch1"]["images_per_s"], 1),
+            _fmt(p["batched"]["images_per_s"], 1), _fmt(p["batched"]["ms_per_image"], 2),
+            f"{p['batched']['images_per_s'] / base:.2f}×", MISSING if change is None else f"{change:+.4f}",
+            _fmt(r["params_m"], 1), _fmt(r["gflops"], 2)]
+
+
 def speed_table(bench: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
-    """One row per model, device and measured path."""
-    head = ["CNN model", "device", "input px", "path", "batch 1 (img/s)", "batched (img/s)", "ms/image (batched)",
-            "speed-up vs fp32 (batched)", "R² change vs fp32", "Parameters (M)", "GFLOPs"]
-    rows = []
-    for arch, b in bench.items():
-        for r in b["results"]:
-            base = r["paths"]["fp32"]["batched"]["images_per_s"]
-            for key, p in r["paths"].items():
-                if key == "fast":
-                    continue
-                change = p.get("r2_change")
-                name = p["name"] + (" ★" if key == r["fast_key"] else "")
-                rows.append([arch, r["device"], str(r["input_size"]), name,
-                             _fmt(p["batch1"]["images_per_s"], 1), _fmt(p["batched"]["images_per_s"], 1),
-                             _fmt(p["batched"]["ms_per_image"], 2), f"{p['batched']['images_per_s'] / base:.2f}×",
-                             MISSING if change is None else f"{change:+.4f}", _fmt(r["params_m"], 1),
-                             _fmt(r["gflops"], 2)])
-    return head, rows
+    """One row per model, device and measured path (★: the fast path)."""
+    rows = [_speed_row(arch, r, p["name"] + (" ★" if key == r["fast_key"] else ""), p)
+            for arch, b in bench.items() for r in b["results"] for key, p in r["paths"].items() if key != "fast"]
+    return ["model", "path", *SPEED_HEAD], rows
 
 
 def fast_speed_table(bench: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
     """One row per model and device: its fast path only (speed_table has every path)."""
-    head = ["model", "device", "input (px)", "fast path", "batch 1 (img/s)", "batched (img/s)", "ms / image (batched)",
-            "vs fp32 (batched)", "R² change vs fp32", "parameters (M)", "GFLOPs"]
-    rows = []
-    for arch, b in bench.items():
-        for r in b["results"]:
-            p, base = r["paths"]["fast"], r["paths"]["fp32"]["batched"]["images_per_s"]
-            change = p.get("r2_change")
-            rows.append([arch, r["device"], str(r["input_size"]), p["name"], _fmt(p["batch1"]["images_per_s"], 1),
-                         _fmt(p["batched"]["images_per_s"], 1), _fmt(p["batched"]["ms_per_image"], 2),
-                         f"{p['batched']['images_per_s'] / base:.2f}×", MISSING if change is None else f"{change:+.4f}",
-                         _fmt(r["params_m"], 1), _fmt(r["gflops"], 2)])
-    return head, rows
+    rows = [_speed_row(arch, r, r["paths"]["fast"]["name"], r["paths"]["fast"])
+            for arch, b in bench.items() for r in b["results"]]
+    return ["model", "fast path", *SPEED_HEAD], rows
+
+
+def _segmented(metrics: dict[str, dict], datasets: list[str]):
+    """(model, dataset, its metrics) of every evaluation with segmentation figures."""
+    for arch, m in metrics.items():
+        for ds in datasets:
+            d = m["datasets"].get(ds)
+            if d and "segmentation" in d:
+                yield arch, ds, d
+
+
+def _segmentation_cells(d: dict) -> list[str]:
+    """Precision, recall, F1 and the matched grains' median and p90 size error."""
+    seg, se = d["segmentation"], d["size_error"]
+    matched = se["matched"][se["method"]]
+    return [_fmt(seg["precision"], 3), _fmt(seg["recall"], 3), _fmt(seg["f1"], 3),
+            MISSING if not matched["n"] else f"{100 * matched['median']:.1f} %",
+            MISSING if not matched["n"] else f"{100 * matched['p90']:.1f} %"]
 
 
 def compact_instance_table(metrics: dict[str, dict], datasets: list[str]) -> tuple[list[str], list[list[str]]]:
@@ -538,16 +536,8 @@ def compact_instance_table(metrics: dict[str, dict], datasets: list[str]) -> tup
     has the raw R² and every sieve method)."""
     head = ["model", "dataset", "precision", "recall", "F1", "size error median", "size error p90"]
     rows = []
-    for arch, m in metrics.items():
-        for ds in datasets:
-            d = m["datasets"].get(ds)
-            if not d or "segmentation" not in d:
-                continue
-            seg, se = d["segmentation"], d["size_error"]
-            matched = se["matched"][se["method"]]
-            rows.append([arch, ds, _fmt(seg["precision"], 3), _fmt(seg["recall"], 3), _fmt(seg["f1"], 3),
-                         MISSING if not matched["n"] else f"{100 * matched['median']:.1f} %",
-                         MISSING if not matched["n"] else f"{100 * matched['p90']:.1f} %"])
+    for arch, ds, d in _segmented(metrics, datasets):
+        rows.append([arch, ds, *_segmentation_cells(d)])
     return head, rows
 
 

@@ -25,8 +25,7 @@ from torch import nn
 
 from ..learn import capability
 from ..learn.capability import Capabilities
-from ..learn.models import count_parameters, main_output
-from ..learn.runtime import autocast
+from ..learn.models import count_parameters
 from .quantize import MAX_R2_CHANGE
 
 logger = logging.getLogger(__name__)
@@ -53,9 +52,10 @@ class Candidate:
     channels_last: bool = False
 
 
-def candidates(device: torch.device, caps: Capabilities) -> tuple[dict[str, Candidate], dict[str, str]]:
+def candidates(device: torch.device, caps: Capabilities,
+               int8: bool = True) -> tuple[dict[str, Candidate], dict[str, str]]:
     """(the paths worth timing on this device, {path: why it is not tried}) — keys are stable
-    names used in the benchmark JSON and the report."""
+    names used in the benchmark JSON and the report. `int8`: whether the estimator allows it."""
     paths = {"fp32": Candidate("fp32 eager", "torch", "fp32")}
     skipped: dict[str, str] = {}
     if device.type == "cuda":
@@ -70,7 +70,10 @@ def candidates(device: torch.device, caps: Capabilities) -> tuple[dict[str, Cand
         skipped["bf16"] = f"no native bf16 ({why}; emulated bf16 is slower than fp32)"
     if caps.onnxruntime:
         paths["ort_fp32"] = Candidate("fp32 ONNX Runtime", "onnxruntime", "fp32")
-        paths["int8"] = Candidate("int8 ONNX Runtime (static, QDQ)", "onnxruntime", "int8")
+        if int8:
+            paths["int8"] = Candidate("int8 ONNX Runtime (static, QDQ)", "onnxruntime", "int8")
+        else:
+            skipped["int8"] = "not offered for this estimator (its outputs feed post-processing)"
     else:
         skipped["ort_fp32"] = skipped["int8"] = "onnxruntime is not installed"
     return paths, skipped
@@ -95,19 +98,6 @@ def throughput(step: Callable[[], object], batch: int, seconds: float, repeats: 
     return {"batch": batch, "images_per_s": ips, "ms_per_image": 1000.0 / ips, "runs": repeats, "iters_per_run": k}
 
 
-def torch_throughput(model: nn.Module, size: int, batch: int, device: torch.device, path: Candidate,
-                     seconds: float, repeats: int) -> dict:
-    fmt = torch.channels_last if path.channels_last else torch.contiguous_format
-    model = model.to(device).eval().to(memory_format=fmt)
-    x = torch.randn(batch, 3, size, size, device=device).contiguous(memory_format=fmt)
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    try:
-        with torch.inference_mode(), autocast(device, path.precision):
-            return throughput(lambda: main_output(model(x)), batch, seconds, repeats, sync)
-    finally:
-        model.to(memory_format=torch.contiguous_format)
-
-
 def choose_fast(paths: dict[str, dict], max_r2_change: float = MAX_R2_CHANGE) -> str:
     """The fastest path (batched images/s) whose overall R² is within ± the budget of fp32's
     (a path measured without a dataset has no R² and counts as within); fp32 itself always is."""
@@ -116,15 +106,17 @@ def choose_fast(paths: dict[str, dict], max_r2_change: float = MAX_R2_CHANGE) ->
     return max(ok, key=lambda k: paths[k]["batched"]["images_per_s"])
 
 
-def onnx_runners(model: nn.Module, size: int, keys: list[str], calibration: np.ndarray, tmp: Path) -> dict:
-    """ONNX Runtime sessions for the requested keys (ort_fp32, int8), from one fp32 export."""
+def onnx_runners(est, size: int, keys: list[str], calibration: np.ndarray, tmp: Path) -> dict:
+    """ONNX Runtime runners (normalised images → outputs) for the requested keys (ort_fp32, int8),
+    from one fp32 export of the estimator's inference module."""
     from .quantize import OrtModel, export_onnx, quantize_int8
 
-    fp32 = export_onnx(model.cpu(), size, tmp / "fp32.onnx")
+    fp32 = export_onnx(est.inference_module().cpu(), size, tmp / "fp32.onnx", est.output_name, est.any_size)
     files = {"ort_fp32": fp32}
     if "int8" in keys:
         files["int8"] = quantize_int8(fp32, tmp / "int8.onnx", calibration)
-    return {k: OrtModel(files[k], torch.get_num_threads()) for k in keys}
+    sessions = {k: OrtModel(files[k], torch.get_num_threads()) for k in keys}
+    return {k: (lambda x, s=s: s(x.numpy())) for k, s in sessions.items()}
 
 
 def model_summary(model: nn.Module, size: int, device: torch.device, caps: Capabilities) -> dict:
@@ -141,132 +133,100 @@ def model_summary(model: nn.Module, size: int, device: torch.device, caps: Capab
     }
 
 
-def benchmark_model(model: nn.Module, meta: dict, device: torch.device, results_root: Path | None,
-                    dataset: str | None, batch: int, seconds: float, repeats: int,
-                    caps: Capabilities | None = None) -> dict:
-    """Every candidate path on one device: speed at batch 1 and batched, and (with a dataset)
-    accuracy on its test split; the fastest within the accuracy budget becomes the "fast" path.
-    Without a dataset only speed is measured (int8 is then calibrated on random inputs)."""
-    from ..learn.data import normalised_images
-    from ..learn.evaluate import eval_rows, predict_rows
+def bench_images(est, results_root: Path | None, rows: list[dict] | None, batch: int) -> tuple[torch.Tensor, float]:
+    """uint8 images at the network's input (the test split's first ones, repeated to `batch`;
+    random ones without a dataset) and their mm per pixel at that input."""
+    from ..learn.data import SceneImages
+    from ..learn.estimator import network_scale
+
+    size = est.meta["input_size"]
+    if rows:
+        ds = SceneImages(results_root, rows[:batch], size, cache=False)
+        images = torch.stack([ds[i][0] for i in range(len(ds))])
+        scale = network_scale(rows[0], size)
+    else:
+        gen = torch.Generator().manual_seed(0)
+        images = torch.randint(0, 256, (max(batch, 1), 3, size, size), dtype=torch.uint8, generator=gen)
+        scale = est.meta["mm_per_px"] * est.meta["image_resolution"] / size
+    return images.repeat(-(-batch // len(images)), 1, 1, 1)[:batch], scale
+
+
+def benchmark_estimator(est, device: torch.device, results_root: Path | None, dataset: str | None, batch: int,
+                        seconds: float, repeats: int, caps: Capabilities | None = None) -> dict:
+    """Every candidate path on one device, end to end (`Estimator.predict`: the network and what
+    reads its outputs): speed at batch 1 and batched, the network's and the reading's share of the
+    time, and (with a dataset) accuracy on its test split; the fastest within the accuracy budget
+    becomes the "fast" path. Without a dataset only speed is measured (int8 is then calibrated on
+    random inputs)."""
+    from ..learn.estimator import predictions, rows_readings
+    from ..learn.evaluate import eval_rows
     from ..learn.metrics import regression_metrics
+    from ..learn.runtime import torch_runner
     from .quantize import calibration_images
 
     caps = caps or capability.detect()
-    size = meta["input_size"]
-    out = {
-        **model_summary(model, size, device, caps),
-    }
+    size = est.meta["input_size"]
+    module = est.inference_module()
+    out = model_summary(module, size, device, caps)
     rows = eval_rows(results_root, dataset) if results_root is not None else None
-    todo, out["skipped"] = candidates(device, caps)
+    todo, out["skipped"] = candidates(device, caps, est.int8)
     ort_keys = [k for k, c in todo.items() if c.engine == "onnxruntime"]
+    pool, scale = bench_images(est, results_root, rows, batch)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     with tempfile.TemporaryDirectory() as tmp:
         runners = {}
         if ort_keys:
             calib = (calibration_images(results_root, dataset, size) if rows
                      else np.random.default_rng(0).standard_normal((8, 3, size, size)).astype(np.float32))
-            runners = onnx_runners(model, size, ort_keys, calib, Path(tmp))
-        test_x = normalised_images(results_root, rows, size) if rows and runners else None
+            runners = onnx_runners(est, size, ort_keys, calib, Path(tmp))
         for key, path in todo.items():
             res = {"name": path.name, **asdict(path)}
             if key == "int8":
                 res["calibration_images"] = len(calib) if rows else 0
+            run = (torch_runner(module, device, path.precision, path.channels_last) if path.engine == "torch"
+                   else runners[key])
+            e = est.with_runner(run)
             for b in (1, batch):
-                if path.engine == "torch":
-                    r = torch_throughput(model, size, b, device, path, seconds, repeats)
-                else:
-                    x = np.random.default_rng(0).standard_normal((b, 3, size, size)).astype(np.float32)
-                    r = throughput(lambda ort=runners[key], x=x: ort(x), b, seconds, repeats)
+                x = pool[:b]
+                r = throughput(lambda e=e, x=x: e.predict(x, scale), b, seconds, repeats, sync)
                 res["batch1" if b == 1 else "batched"] = r
                 logger.info(f"  {path.name:<32} batch {b:>3}: {r['images_per_s']:7.1f} images/s, "
                             f"{r['ms_per_image']:7.2f} ms/image")
-            if rows and path.engine == "torch":
-                p, y = predict_rows(model.to(device), meta, results_root, rows, device, path.precision)
-                res["accuracy"] = regression_metrics(y, p)
-            elif rows:
-                res["accuracy"] = regression_metrics(test_x[1], runners[key].predict(test_x[0].numpy()))
+            outputs = e.outputs(pool)
+            net = throughput(lambda e=e: e.outputs(pool), batch, seconds, repeats, sync)
+            post = throughput(lambda e=e, o=outputs: e.read(o, [scale] * len(o)), batch, seconds, repeats)
+            res["stages"] = {"network_ms_per_image": net["ms_per_image"], "read_ms_per_image": post["ms_per_image"]}
+            if rows:
+                readings, y = rows_readings(e, results_root, rows)
+                res["accuracy"] = regression_metrics(y, predictions(readings))
             out["paths"][key] = res
+            module.to(memory_format=torch.contiguous_format)
     base = out["paths"]["fp32"]
     for res in out["paths"].values():
         res["r2_change"] = res["accuracy"]["overall"]["r2"] - base["accuracy"]["overall"]["r2"] if rows else None
     key = out["fast_key"] = choose_fast(out["paths"])
     fast = out["paths"]["fast"] = dict(out["paths"][key])
+    out["stages"] = fast["stages"]
     out["speedup_batched"] = fast["batched"]["images_per_s"] / base["batched"]["images_per_s"]
     out["speedup_batch1"] = fast["batch1"]["images_per_s"] / base["batch1"]["images_per_s"]
     for k, why in out["skipped"].items():
         logger.info(f"  (not tried: {k}: {why})")
     changes = ", ".join(f"{k} {v['r2_change']:+.4f}" for k, v in out["paths"].items()
                         if k not in ("fp32", "fast") and v["r2_change"] is not None)
-    logger.info(f"  fast path: {fast['name']} ({out['speedup_batched']:.2f}× fp32 batched)"
-        + (f"; R² change {changes}" if changes else ""))
-    return out
-
-
-INSTANCE_PATH = Candidate("fp32 eager + watershed", "torch", "fp32")
-
-
-def benchmark_instances(model: nn.Module, meta: dict, device: torch.device, results_root: Path | None,
-                        dataset: str | None, batch: int, seconds: float, repeats: int,
-                        caps: Capabilities | None = None) -> dict:
-    """The instance estimator end to end, in the layout of `benchmark_model`: one path, the
-    network in PyTorch fp32 plus the post-processing in Python (watershed, measurement,
-    read-out) per image, at batch 1 and batched, on the test split's images (random ones without
-    a dataset); and, apart, the network's and the post-processing's share of the time."""
-    from ..learn.evaluate import eval_rows
-    from ..learn.instances import InstanceEstimator, load_scenes, torch_maps_fn
-    from ..learn.metrics import regression_metrics
-    from ..psd import TARGETS
-
-    caps = caps or capability.detect()
-    size = meta["input_size"]
-    est = InstanceEstimator(torch_maps_fn(model.to(device), device), meta)
-    rows = eval_rows(results_root, dataset) if results_root is not None else None
-    if rows:
-        images, _ = load_scenes(results_root, rows)
-    else:
-        gen = torch.Generator().manual_seed(0)
-        images = torch.randint(0, 256, (max(batch, 1), 3, size, size), dtype=torch.uint8, generator=gen)
-    mm = float(meta["mm_per_px"])
-    out = {
-        **model_summary(model, size, device, caps),
-        "skipped": {"other paths": "the instance estimator is timed as fp32 eager + watershed only (its "
-                                   "post-processing runs in Python; the exported ONNX network is not benchmarked)"},
-    }
-    reps = -(-batch // len(images))
-    pool = images.repeat(reps, 1, 1, 1)
-    res = {"name": INSTANCE_PATH.name, **asdict(INSTANCE_PATH)}
-    for b in (1, batch):
-        x = pool[:b]
-        r = throughput(lambda x=x: est.analyse(x, mm), b, seconds, repeats)
-        res["batch1" if b == 1 else "batched"] = r
-        logger.info(f"  {INSTANCE_PATH.name:<32} batch {b:>3}: {r['images_per_s']:7.1f} images/s, "
-                    f"{r['ms_per_image']:7.2f} ms/image")
-    x = pool[:batch]
-    net = throughput(lambda: est.maps(x), batch, seconds, repeats)
-    maps = est.maps(x)
-    post = throughput(lambda: [est.analyse_maps(mp, mm) for mp in maps], batch, seconds, repeats)
-    out["stages"] = {"network_ms_per_image": net["ms_per_image"], "postprocess_ms_per_image": post["ms_per_image"]}
-    logger.info(f"  of which network {net['ms_per_image']:.1f} ms/image, watershed + measurement + read-out "
-                f"{post['ms_per_image']:.1f} ms/image")
-    if rows:
-        p = np.stack([r.calibrated for i in range(0, len(images), batch)
-                      for r in est.analyse(images[i : i + batch], mm)])
-        y = np.array([[r[k] for k in TARGETS] for r in rows], float)
-        res["accuracy"] = regression_metrics(y, p)
-    res["r2_change"] = 0.0 if rows else None
-    out["paths"]["fp32"] = res
-    out["fast_key"] = "fp32"
-    out["paths"]["fast"] = dict(res)
-    out["speedup_batched"] = out["speedup_batch1"] = 1.0
+    st = fast["stages"]
+    logger.info(f"  fast path: {fast['name']} ({out['speedup_batched']:.2f}× fp32 batched; network "
+                f"{st['network_ms_per_image']:.1f} ms/image, reading {st['read_ms_per_image']:.1f} ms/image)"
+                + (f"; R² change {changes}" if changes else ""))
     return out
 
 
 def benchmark(model_path: Path, results_root: Path, dataset: str, batch: int, seconds: float, repeats: int,
               device: str = "auto") -> dict:
     """Speed and accuracy of every path on this machine (CPU, and the GPU when present)."""
-    from ..learn.runtime import load_model, pick_device
+    from ..learn.runtime import load_estimator, pick_device
 
-    model, meta = load_model(model_path, "cpu")
+    est = load_estimator(model_path, "cpu")
+    meta = est.meta
     devices = [torch.device("cpu")]
     if pick_device(device).type == "cuda":
         devices.append(torch.device("cuda"))
@@ -275,10 +235,10 @@ def benchmark(model_path: Path, results_root: Path, dataset: str, batch: int, se
     result = {"arch": meta["arch"], "weights": meta["weights"], "cpu": caps.as_dict(), "results": []}
     for dev in devices:
         logger.info(f"{meta['arch']} on {dev} at {meta['input_size']} px:")
-        bench = benchmark_instances if meta["arch"] == "instances" else benchmark_model
-        result["results"].append(bench(model, meta, dev, results_root, dataset, batch, seconds, repeats, caps))
+        result["results"].append(benchmark_estimator(est, dev, results_root, dataset, batch, seconds, repeats, caps))
     fast = result["results"][-1]["paths"]
     result["r2_change"] = fast["fast"]["r2_change"]
-    logger.info(f"R² overall: fp32 {fast['fp32']['accuracy']['overall']['r2']:.4f}, fast "
-        f"{fast['fast']['accuracy']['overall']['r2']:.4f} (change {result['r2_change']:+.4f})")
+    if fast["fp32"].get("accuracy"):
+        logger.info(f"R² overall: fp32 {fast['fp32']['accuracy']['overall']['r2']:.4f}, fast "
+                    f"{fast['fast']['accuracy']['overall']['r2']:.4f} (change {result['r2_change']:+.4f})")
     return result

@@ -18,9 +18,9 @@ from torch.nn import functional as F
 
 from .. import PsdError
 from ..io import read_photo, same_file, write_json
-from ..learn.data import normalise, to_input
-from ..learn.models import main_output
-from ..psd import FOOTPRINT_DEFINITIONS, SIZE_DEFINITIONS, TARGETS, weighted_percentiles
+from ..learn.data import to_input
+from ..learn.estimator import Estimator, reading_of
+from ..psd import TARGETS
 
 logger = logging.getLogger(__name__)
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
@@ -98,7 +98,8 @@ def _check_outputs(model: Path, inputs: list[str], out: Path | None = None, mask
             raise PsdError(f"{flag} {path} is a folder; give a file name")
         if same_file(path, model) or same_file(path, model.with_name("meta.json")):
             raise PsdError(f"{flag} {path} is the model: choose another file")
-        hit = next((i for i in images if same_file(path, i)), None) or next((f for f in folders if _inside(path, f)), None)
+        hit = (next((i for i in images if same_file(path, i)), None)
+               or next((f for f in folders if _inside(path, f)), None))
         if hit is not None:
             raise PsdError(f"{flag} {path} would overwrite or land among the input images ({hit}): choose a file "
                            "outside them")
@@ -143,7 +144,8 @@ def target_size(h: int, w: int, meta: dict, mm_per_px: float | None) -> tuple[in
     return max(32, round(h * scale)), max(32, round(w * scale))
 
 
-def prepare(image: np.ndarray, meta: dict, mm_per_px: float | None, size_hw: tuple[int, int] | None = None) -> torch.Tensor:
+def prepare(image: np.ndarray, meta: dict, mm_per_px: float | None,
+            size_hw: tuple[int, int] | None = None) -> torch.Tensor:
     """uint8 image → uint8 1x3xHxW tensor at the scale the network was trained on. `size_hw`: the
     image's full size when `image` was decoded reduced (read_photo), so the scale stays exact."""
     size = target_size(*(size_hw or image.shape[:2]), meta, mm_per_px)
@@ -157,83 +159,58 @@ def prepare(image: np.ndarray, meta: dict, mm_per_px: float | None, size_hw: tup
     return t.round().clamp(0, 255).to(torch.uint8)
 
 
-def load_predictor(model_path: Path, device: str = "cpu"):
-    """→ (function: normalised float N×3×S×S tensor → N×3 mm array, meta). A `model.pt` runs in
-    PyTorch; an exported `.onnx` (fp32 or int8, with the export's meta.json beside it) runs in
-    ONNX Runtime on the CPU. For an instance model (arch 'instances') the function returns its
-    N×C×H×W maps (foreground, boundary, distance, size) instead: see `InstanceOutputs`."""
+def load_predictor(model_path: Path, device: str = "cpu") -> Estimator:
+    """A model file as its estimator (`learn.estimator.Estimator`): a `model.pt` runs in PyTorch;
+    an exported `.onnx` (fp32 or int8, with the export's meta.json beside it) runs in ONNX
+    Runtime on the CPU."""
     model_path = Path(model_path)
-    if model_path.suffix == ".onnx":
-        from ..learn.runtime import meta_problems
-        from .quantize import OrtModel, require_onnxruntime
+    if model_path.suffix != ".onnx":
+        from ..learn.runtime import load_estimator, pick_device
 
-        require_onnxruntime(f"the ONNX model {model_path}")
+        return load_estimator(model_path, pick_device(device))
+    from ..learn.registry import estimator_class
+    from ..learn.runtime import meta_problems
+    from .quantize import OrtModel, require_onnxruntime
 
-        meta_path = model_path.with_name("meta.json")
-        if not model_path.is_file():
-            raise PsdError(f"model file not found: {model_path}")
-        if not meta_path.is_file():
-            raise PsdError(f"{meta_path} is missing: an ONNX model needs the meta.json that `psdfactory export` writes beside it")
-        if meta_path.stat().st_size > 1_000_000:
-            raise PsdError(f"{meta_path} refused: {meta_path.stat().st_size} bytes is far more than an export's meta.json holds")
-        try:
-            meta = json.loads(meta_path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-            raise PsdError(f"{meta_path} is not readable JSON ({e})") from None
-        problems = meta_problems(meta)
-        if problems:
-            raise PsdError(f"{meta_path} refused: " + "; ".join(problems))
-        if model_path.stat().st_size == 0:
-            raise PsdError(f"{model_path} is empty (0 bytes), not an ONNX model; export the model again")
-        try:
-            ort = OrtModel(model_path, torch.get_num_threads())
-        except Exception as e:  # onnxruntime's own errors (InvalidProtobuf, Fail, ...)
-            first = (str(e).strip().splitlines() or [type(e).__name__])[0][:200]
-            raise PsdError(f"{model_path} is not an ONNX model ONNX Runtime can load ({first}); export the model "
-                           "again") from None
-        return (lambda x: ort(x.numpy())), meta
-    from ..learn.runtime import load_model, pick_device
-
-    dev = pick_device(device)
-    model, meta = load_model(model_path, dev)
-    if meta["arch"] == "instances":
-        from ..learn.instances import torch_maps_fn
-
-        return torch_maps_fn(model, dev), meta
-
-    def run(x: torch.Tensor) -> np.ndarray:
-        with torch.inference_mode():
-            return main_output(model(x.to(dev))).float().cpu().numpy()
-
-    return run, meta
+    require_onnxruntime(f"the ONNX model {model_path}")
+    meta_path = model_path.with_name("meta.json")
+    if not model_path.is_file():
+        raise PsdError(f"model file not found: {model_path}")
+    if not meta_path.is_file():
+        raise PsdError(f"{meta_path} is missing: an ONNX model needs the meta.json that `psdfactory export` writes "
+                       "beside it")
+    if meta_path.stat().st_size > 1_000_000:
+        raise PsdError(f"{meta_path} refused: {meta_path.stat().st_size} bytes is far more than an export's meta.json "
+                       "holds")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise PsdError(f"{meta_path} is not readable JSON ({e})") from None
+    problems = meta_problems(meta)
+    if problems:
+        raise PsdError(f"{meta_path} refused: " + "; ".join(problems))
+    if model_path.stat().st_size == 0:
+        raise PsdError(f"{model_path} is empty (0 bytes), not an ONNX model; export the model again")
+    try:
+        ort = OrtModel(model_path, torch.get_num_threads())
+    except Exception as e:  # onnxruntime's own errors (InvalidProtobuf, Fail, ...)
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0][:200]
+        raise PsdError(f"{model_path} is not an ONNX model ONNX Runtime can load ({first}); export the model "
+                       "again") from None
+    return estimator_class(meta["arch"])(meta, lambda x: ort(x.numpy()))
 
 
 COLUMNS = ["image", *TARGETS, "size_definition", "weighting", "error"]
-LEGACY_DEFINITION = "b-axis"  # a model trained before sizes had names learnt the drawn size, the b-axis
-
-
-def model_definition(meta: dict) -> str:
-    """The size definition a model's training labels were of."""
-    return meta.get("size_definition", LEGACY_DEFINITION)
 
 
 def reading(meta: dict, requested: str | None) -> dict:
     """What predict's d-values will be of: {"size_definition", "weighting"}. A model reads the
-    definition it was trained on; an instance model also estimates the other solid definitions it
-    has a read-out for, and measures the footprint ones (feret-min, feret-max, ecd) on the grains
-    it finds. Anything else is refused, naming what the model can read."""
-    own, weighting = model_definition(meta), meta.get("weighting", "number")
-    definition = requested or own
-    if definition not in SIZE_DEFINITIONS:
-        raise PsdError(f"--size-definition {definition!r}: not a size definition; one of {', '.join(SIZE_DEFINITIONS)}")
-    can = {own}
-    if meta.get("arch") == "instances":
-        can |= set(meta.get("readouts") or {}) | set(FOOTPRINT_DEFINITIONS)
-    if definition not in can:
-        raise PsdError(f"--size-definition {definition}: this {meta.get('arch')} model reads "
-                       f"{', '.join(d for d in SIZE_DEFINITIONS if d in can)} (trained on {own} labels); train one "
-                       f"with labels.size_definition: {definition} to read {definition}")
-    return {"size_definition": definition, "weighting": weighting}
+    definition it was trained on, and what else its estimator can (`Estimator.definitions`: an
+    instance model also estimates the other solid definitions it has a read-out for, and measures
+    the footprint ones on the grains it finds). Anything else is refused, naming what it can read."""
+    from ..learn.registry import estimator_class
+
+    return reading_of(estimator_class(meta["arch"]), meta, requested)
 
 
 def describe_model(meta: dict, model_path: Path, mm_per_px: float | None) -> list[str]:
@@ -245,18 +222,19 @@ def describe_model(meta: dict, model_path: Path, mm_per_px: float | None) -> lis
     return lines
 
 
-def predict_one(run, meta: dict, path: Path, mm_per_px: float | None, instance: InstanceOutputs | None = None,
+def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: GrainOutputs | None = None,
                 what: dict | None = None) -> dict:
     """One image → its row; a bad image gives a row whose `error` names the file and the reason.
-    With an instance model (`instance`), the calibrated d-values of the particles it measured,
-    and its overlay, mask and particle rows written. `what`: the reading (``reading``)."""
+    With `grains` (an estimator that finds grains), its overlay, mask and particle rows are
+    written. `what`: the reading (``reading``)."""
+    meta = est.meta
     what = what or reading(meta, None)
     try:
         image, size_hw = read_photo(path, need=lambda h, w: target_size(h, w, meta, mm_per_px))
-        if instance is not None:
-            d = instance.predict(path, image, size_hw, prepare(image, meta, mm_per_px, size_hw), what)
-        else:
-            d = run(normalise(prepare(image, meta, mm_per_px, size_hw)))[0]
+        found = est.predict(prepare(image, meta, mm_per_px, size_hw), network_scale(meta))[0]
+        if grains is not None:
+            grains.write(path, image, size_hw, found.grains)
+        d = est.in_definition(found, what["size_definition"], what["weighting"], str(path))
         return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, **what, "error": ""}
     except PsdError as e:
         error = str(e)
@@ -267,17 +245,17 @@ def predict_one(run, meta: dict, path: Path, mm_per_px: float | None, instance: 
     return {"image": str(path), **dict.fromkeys(TARGETS), **what, "error": error}
 
 
-def predict_rows(run, meta: dict, files: list[Path], mm_per_px: float | None = None,
-                 done: dict[str, dict] | None = None, instance: InstanceOutputs | None = None,
+def predict_rows(est: Estimator, files: list[Path], mm_per_px: float | None = None,
+                 done: dict[str, dict] | None = None, grains: GrainOutputs | None = None,
                  what: dict | None = None) -> Iterator[tuple[dict, bool]]:
     """(row, predicted now) per file, in order, one image in memory at a time; the rows of
     `done` (keyed by image_key; of the same reading) are given back as they are, not predicted again."""
     done = done or {}
-    if instance is not None:
-        instance.name_outputs(files)
+    if grains is not None:
+        grains.name_outputs(files)
     for f in files:
         old = done.get(image_key(f))
-        yield ({**old, "image": str(f)}, False) if old else (predict_one(run, meta, f, mm_per_px, instance, what), True)
+        yield ({**old, "image": str(f)}, False) if old else (predict_one(est, f, mm_per_px, grains, what), True)
 
 
 def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, device: str, outputs: dict | None = None,
@@ -285,29 +263,31 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
     """The model (its runner and meta, described in the log), the image files to predict and what
     the d-values will be of (``reading``). `outputs`: an instance model's --overlay / --masks /
     --particles (refused for the others)."""
-    run, meta = load_predictor(model_path, device)
-    if meta["arch"] != "instances" and any((outputs or {}).values()):
-        raise PsdError(f"--overlay, --masks and --particles need an instance model (arch 'instances'); {meta['arch']} "
-                       "reads d10/d50/d90 straight off the image and measures no particle")
+    est = load_predictor(model_path, device)
+    meta = est.meta
+    if not est.finds_grains and any((outputs or {}).values()):
+        raise PsdError(f"--overlay, --masks and --particles need a model that finds grains (e.g. the instance "
+                       f"estimator, arch 'instances'); {meta['arch']} reads d10/d50/d90 straight off the image and "
+                       "measures no particle")
     what = reading(meta, size_definition)
+    files = image_files(inputs)
     for line in describe_model(meta, model_path, mm_per_px):
         logger.info(line)
     logger.info(f"d10/d50/d90 of the particles' {what['size_definition']} size, {what['weighting']}-weighted")
-    files = image_files(inputs)
-    return run, meta, files, what
+    return est, files, what
 
 
 def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None, device: str = "cpu",
                   overlay_dir: Path | None = None, masks_dir: Path | None = None,
                   particles_out: Path | None = None, size_definition: str | None = None) -> list[dict]:
     """One row per image. An instance model can also write each image's overlay and instance
-    mask and a table of every measured particle (`InstanceOutputs`)."""
+    mask and a table of every measured particle (`GrainOutputs`)."""
     outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
-    run, meta, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition)
-    instance = InstanceOutputs(run, meta, **outputs) if meta["arch"] == "instances" else None
-    rows = [row for row, _ in predict_rows(run, meta, files, mm_per_px, instance=instance, what=what)]
-    if instance is not None:
-        instance.finish()
+    est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition)
+    grains = GrainOutputs(est.meta, **outputs) if est.finds_grains else None
+    rows = [row for row, _ in predict_rows(est, files, mm_per_px, grains=grains, what=what)]
+    if grains is not None:
+        grains.finish()
     return rows
 
 
@@ -478,7 +458,7 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
     """`psdfactory predict`: each image read, predicted and written (to `emit` and to `out`'s
     partial file) before the next is read, so memory stays flat and an interrupted run keeps
     what it did; `out` appears only when every image is done. → (images, failed). An instance
-    model can also write overlays, masks and the particle table (`InstanceOutputs`)."""
+    model can also write overlays, masks and the particle table (`GrainOutputs`)."""
     outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
     lock = OutLock(out) if out is not None else None
     try:
@@ -491,10 +471,10 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
 
 def _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_stream, outputs,
             size_definition) -> tuple[int, int]:
-    run, meta, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition)
+    est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition)
     done = done_rows(out) if (resume and out is not None) else {}
     done = {k: r for k, r in done.items() if all(r.get(c) == what[c] for c in what)}  # rows of another reading: again
-    instance = InstanceOutputs(run, meta, **outputs, keep=done) if meta["arch"] == "instances" else None
+    grains = GrainOutputs(est.meta, **outputs, keep=done) if est.finds_grains else None
     if resume and out is None:
         logger.warning("--resume needs --out: nothing to resume from")
     elif resume:
@@ -504,7 +484,7 @@ def _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_s
     progress = Progress(len(files), progress_stream, enabled=logger.isEnabledFor(logging.INFO))  # not with -q
     failed = 0
     try:
-        for row, predicted in predict_rows(run, meta, files, mm_per_px, done, instance, what):
+        for row, predicted in predict_rows(est, files, mm_per_px, done, grains, what):
             failed += bool(row["error"])
             if writer is not None:
                 writer.write(row)
@@ -516,18 +496,18 @@ def _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_s
             writer.close()
     if writer is not None:
         writer.finish()
-    if instance is not None:
-        instance.finish()
+    if grains is not None:
+        grains.finish()
     return len(files), failed
 
 
-# ---- an instance model's own outputs ---------------------------------------------------------
+# ---- the files of a model that finds grains -------------------------------------------------
 
 PARTICLE_COLUMNS = ["image", "id", "area_mm2", "sieve_size_mm", "volume_mm3", "touches_edge"]
 
 
-class InstanceOutputs:
-    """Prediction with an instance model (arch 'instances'), and the files it can write per
+class GrainOutputs:
+    """The files predict writes for a model that finds grains (`Estimator.finds_grains`), per
     image: the overlay (`<stem>.png`: outlines and sieve sizes in mm drawn on the image), the
     instance mask (`<stem>.png`, 16-bit, 0 = background, k = one particle, at the image's own
     size) and the rows of the particle table (written to `<particles>.partial.csv` as they come,
@@ -535,11 +515,8 @@ class InstanceOutputs:
     over from the previous table). Stems shared by several inputs (e.g. a results folder's
     `image.png`s) get their folder's name in front: `<folder>_<stem>`."""
 
-    def __init__(self, maps_fn, meta: dict, overlay_dir: Path | None = None, masks_dir: Path | None = None,
+    def __init__(self, meta: dict, overlay_dir: Path | None = None, masks_dir: Path | None = None,
                  particles_out: Path | None = None, keep: dict[str, dict] | None = None):
-        from ..learn.instances import InstanceEstimator
-
-        self.est = InstanceEstimator(maps_fn, meta)
         self.meta = meta
         self.overlay_dir = Path(overlay_dir) if overlay_dir else None
         self.masks_dir = Path(masks_dir) if masks_dir else None
@@ -580,22 +557,20 @@ class InstanceOutputs:
             taken.add(name)
             self.names[f] = name
 
-    def predict(self, path: Path, image: np.ndarray, size_hw: tuple[int, int], x: torch.Tensor,
-                what: dict | None = None) -> np.ndarray:
-        """The calibrated d10/d50/d90 of one image (`x`: it at the network's scale) in the reading
-        `what` (the model's own by default), and its files."""
+    def write(self, path: Path, image: np.ndarray, size_hw: tuple[int, int], res) -> None:
+        """The files of one image from what the estimator found in it (`res`: mask, measurements,
+        sizes_mm and raw d-values, as `learn.instances.estimator.InstanceResult`)."""
         from ..io import write_png
-        from ..learn.instances import resize_mask
-        from ..learn.particles import draw_overlay
+        from ..learn.instances.draw import draw_overlay, resize_mask
 
-        res = self.est.analyse(x, network_scale(self.meta))[0]
         m = res.measurements
         if self.masks_dir:  # at the size of the image file
             name = self.names.get(path, path.stem)
             write_png(self.masks_dir / f"{name}.png", resize_mask(res.mask, size_hw).astype(np.uint16))
             self.written["instance masks"] += 1
         if self.overlay_dir:  # on the image as decoded
-            over = draw_overlay(image, resize_mask(res.mask, image.shape[:2]), res.sizes_mm, m.ids, min_text_area_px=40)
+            over = draw_overlay(image, resize_mask(res.mask, image.shape[:2]), res.sizes_mm, m.ids,
+                                min_text_area_px=40)
             write_png(self.overlay_dir / f"{self.names.get(path, path.stem)}.png", over)
             self.written["overlays"] += 1
         if self.writer is not None:
@@ -605,26 +580,8 @@ class InstanceOutputs:
             self.file.flush()
             self.n_particles += len(m)
         raw = ", ".join(f"{v:.3f}" for v in res.raw)
-        logger.debug(f"{path}: {len(m)} particles ({int((~m.touches_edge).sum())} off the edge), raw d10/d50/d90 {raw} mm")
-        return self.in_definition(res, what or reading(self.meta, None), path)
-
-    def in_definition(self, res, what: dict, path: Path) -> np.ndarray:
-        """d10/d50/d90 in the definition asked: the model's own read-out, another solid
-        definition's read-out, or a footprint definition measured on the whole grains it found."""
-        from ..learn.readout import apply_readout
-
-        definition = what["size_definition"]
-        if definition == model_definition(self.meta):
-            return res.calibrated
-        if definition in FOOTPRINT_DEFINITIONS:
-            m = res.measurements
-            size = {"feret-min": m.min_feret_mm, "feret-max": m.max_feret_mm, "ecd": m.eq_diameter_mm}[definition]
-            whole = ~m.touches_edge
-            if not whole.any():
-                raise PsdError(f"{path}: no whole grain found (every one touches the image's edge): no {definition} "
-                               "to measure")
-            return weighted_percentiles(size[whole], m.volume_mm3[whole] if what["weighting"] == "volume" else None)
-        return apply_readout(self.meta["readouts"][definition], res.stats[None])[0]
+        logger.debug(f"{path}: {len(m)} particles ({int((~m.touches_edge).sum())} off the edge), raw d10/d50/d90 "
+                     f"{raw} mm")
 
     def finish(self) -> None:
         if self.writer is not None and not self.file.closed:

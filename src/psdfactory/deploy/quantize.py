@@ -18,22 +18,10 @@ from torch import nn
 
 from .. import PsdError
 from ..io import atomic_path
-from ..learn.models import main_output
 
 # A faster inference path (and an int8 export) must keep the overall R² on the test split
 # within ± this of the fp32 model's.
 MAX_R2_CHANGE = 0.005
-
-
-class OutputOnly(nn.Module):
-    """A plain tensor out (d10, d50, d90 in mm), also for InceptionV3's tuple output."""
-
-    def __init__(self, model: nn.Module):
-        super().__init__()
-        self.m = model
-
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        return main_output(self.m(images))
 
 
 def require_onnxruntime(what: str) -> None:
@@ -45,13 +33,15 @@ def require_onnxruntime(what: str) -> None:
                        "(or use the PyTorch model.pt)")
 
 
-def export_onnx(model: nn.Module, size: int, path: Path) -> Path:
-    """fp32 ONNX with a dynamic batch: input `images` (N×3×S×S, normalised), output `d_mm`."""
-    wrapped = OutputOnly(model.float().eval()).eval()
-    x = torch.zeros(1, 3, size, size)
+def export_onnx(module: nn.Module, size: int, path: Path, output_name: str = "d_mm", any_size: bool = False) -> Path:
+    """fp32 ONNX of an estimator's inference module (`Estimator.inference_module`) with a dynamic
+    batch: input `images` (N×3×S×S, normalised; N×3×H×W, any H and W, with `any_size`), output
+    `output_name`."""
+    module = module.float().eval()
+    axes = {0: "batch", 2: "height", 3: "width"} if any_size else {0: "batch"}
     with atomic_path(path) as tmp:
-        torch.onnx.export(wrapped, (x,), str(tmp), input_names=["images"], output_names=["d_mm"],
-                          dynamic_axes={"images": {0: "batch"}, "d_mm": {0: "batch"}}, dynamo=False)
+        torch.onnx.export(module, (torch.zeros(1, 3, size, size),), str(tmp), input_names=["images"],
+                          output_names=[output_name], dynamic_axes={"images": axes, output_name: axes}, dynamo=False)
     return Path(path)
 
 

@@ -20,6 +20,28 @@ from __future__ import annotations
 import torch
 from torch.nn import functional as F
 
+# test-time augmentation (e.g. train.instances.tta): the maps averaged over these views of the image,
+# each (quarter turns, mirrored) and turned back — the symmetries the training crops are drawn
+# under, so each view is an image of the kind the network learnt
+TTA_VIEWS = {
+    "none": ((0, False),),
+    "flips": ((0, False), (0, True), (2, False), (2, True)),
+    "d4": tuple((k, flip) for k in range(4) for flip in (False, True)),
+}
+
+
+def view(x: torch.Tensor, k: int, flip: bool) -> torch.Tensor:
+    """`x` (…×H×W) turned by k quarter turns, then mirrored left-right with `flip`: an element of
+    the dihedral group of the square."""
+    x = torch.rot90(x, k, dims=(-2, -1))
+    return torch.flip(x, dims=(-1,)) if flip else x
+
+
+def unview(x: torch.Tensor, k: int, flip: bool) -> torch.Tensor:
+    """The inverse of `view`: maps of a viewed image back in the image's own frame."""
+    x = torch.flip(x, dims=(-1,)) if flip else x
+    return torch.rot90(x, -k, dims=(-2, -1))
+
 
 def augment_d4(batch: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     """Random 90° rotations and flips (the dihedral group of the square), per image."""
@@ -27,8 +49,7 @@ def augment_d4(batch: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     k = torch.randint(0, 4, (len(batch),), generator=gen)
     flip = torch.randint(0, 2, (len(batch),), generator=gen)
     for i in range(len(batch)):
-        x = torch.rot90(batch[i], int(k[i]), dims=(1, 2))
-        out[i] = torch.flip(x, dims=(2,)) if flip[i] else x
+        out[i] = view(batch[i], int(k[i]), bool(flip[i]))
     return out
 
 

@@ -5,7 +5,7 @@
   ``mask.png``): their d10/d50/d90, mean and count. A perfect measurement of every visible
   particle gives this much; hidden fines and the particles under the top layer cost the rest.
 - **footprint ceiling** (perfect segmentation): the instance estimator's own read-out
-  (`readout.fit_readout` of `particles.instance_stats`, min Feret) fitted to the footprints of
+  (`readout.fit_readout` of `instances.stats.instance_stats`, min Feret) fitted to the footprints of
   the TRUE masks. What measuring each visible footprint gives with no segmentation error: a
   partly hidden grain shows a smaller footprint than its sieve size, which the visible-particle
   ceiling (true sizes) does not pay for. The gap between the two is the cost of measuring
@@ -33,9 +33,11 @@ import numpy as np
 
 from .. import PsdError
 from ..io import read_png
+from ..manifest import group_by_scene
 from ..psd import PERCENTILES, TARGETS, weighted_percentiles
+from .instances.measure import measure_instances
+from .instances.stats import instance_stats
 from .metrics import MIN_SCENES, cross_validated_r2, fitted_r2, r2_scores
-from .particles import instance_stats, measure_instances
 from .readout import apply_readout, fit_readout
 
 logger = logging.getLogger(__name__)
@@ -161,12 +163,8 @@ def read_scene_set(scene_shards: list, particle_shards: list, splits: list[str] 
     if splits is not None:
         scenes = [s for s in scenes if s["split"] in splits]
     parts = pa.concat_tables([pq.read_table(f, columns=["scene_id", "size_mm", "visible_px"]) for f in particle_shards])
-    ids = np.asarray(parts.column("scene_id").to_pylist())
-    size, vis = np.asarray(parts.column("size_mm")), np.asarray(parts.column("visible_px"))
-    order = np.argsort(ids, kind="stable")
-    uniq, start = np.unique(ids[order], return_index=True)
-    groups = np.split(order, start[1:])
-    particles = {str(u): (size[g], vis[g]) for u, g in zip(uniq, groups, strict=True)}
+    grouped = group_by_scene(parts, ("size_mm", "visible_px"))
+    particles = {k: (v["size_mm"], v["visible_px"]) for k, v in grouped.items()}
     missing = [s["scene_id"] for s in scenes if s["scene_id"] not in particles]
     if missing:
         raise PsdError(f"the particle manifest has no rows for {len(missing)} scenes (e.g. {missing[0]}); "

@@ -37,6 +37,22 @@ def training_rows(results_root: Path, datasets: tuple[str, ...] | list[str]
     return train, val, rows
 
 
+def particles_by_scene(results_root: Path, datasets: tuple[str, ...] | list[str]) -> dict[str, dict[str, np.ndarray]]:
+    """scene_id → {particle_id, size_mm, z_mm} arrays of the particle manifests of `datasets`."""
+    from ..manifest import read_particles
+
+    return {k: v for ds in datasets for k, v in read_particles(results_root, ds).items()}
+
+
+def sizes_px_by_id(particles: dict[str, np.ndarray], mm_per_px: float) -> np.ndarray:
+    """True sieve size in pixels per mask id (= particle_id + 1; NaN where no particle) of one
+    scene's rows of `data.particles_by_scene`."""
+    pid = np.asarray(particles["particle_id"], dtype=np.int64)
+    out = np.full(int(pid.max(initial=-1)) + 2, np.nan)
+    out[pid + 1] = np.asarray(particles["size_mm"], float) / float(mm_per_px)
+    return out
+
+
 def label_definition(rows: list[dict]) -> dict[str, str]:
     """What the scenes' targets d*_mm are of: {"size_definition": ..., "weighting": ...}, the same
     for every row (a model learns one definition; mixing two would teach it neither)."""

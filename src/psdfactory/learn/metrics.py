@@ -51,15 +51,21 @@ def r2_scores(y: np.ndarray, pred: np.ndarray) -> np.ndarray:
     return 1.0 - ss_res / np.where(ss_tot > 0, ss_tot, np.nan)
 
 
+def ridge_fit(x: np.ndarray, y: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mean, scale, weights) of a ridge regression of `y` on standardised `x` (the penalty
+    `ridge` × N on the slopes, none on the intercept; weights[0] the intercept)."""
+    mu, sd = x.mean(axis=0), x.std(axis=0)
+    sd = np.where(sd > 0, sd, 1.0)
+    a = np.column_stack([np.ones(len(x)), (x - mu) / sd])
+    reg = ridge * len(x) * np.eye(a.shape[1])
+    reg[0, 0] = 0.0
+    return mu, sd, np.linalg.solve(a.T @ a + reg, a.T @ y)
+
+
 def ridge_predict(x_fit: np.ndarray, y_fit: np.ndarray, x: np.ndarray, ridge: float = 1e-3) -> np.ndarray:
     """A ridge-regularised linear read-out of `y_fit` from `x_fit` (features standardised on
     `x_fit`, the intercept unpenalised), applied to `x`."""
-    mu, sd = x_fit.mean(axis=0), x_fit.std(axis=0)
-    sd[sd == 0] = 1.0
-    a = np.column_stack([np.ones(len(x_fit)), (x_fit - mu) / sd])
-    reg = ridge * len(x_fit) * np.eye(a.shape[1])
-    reg[0, 0] = 0.0  # no penalty on the intercept
-    w = np.linalg.solve(a.T @ a + reg, a.T @ y_fit)
+    mu, sd, w = ridge_fit(x_fit, y_fit, ridge)
     return np.column_stack([np.ones(len(x)), (x - mu) / sd]) @ w
 
 

@@ -1,5 +1,5 @@
 """The calibrated read-out of the instance estimator: a ridge regression from one image's instance
-statistics (`particles.instance_stats`) to its labels. The camera cannot see the hidden fines;
+statistics (`instances.stats.instance_stats`) to its labels. The camera cannot see the hidden fines;
 fitted on a training split's instances, the read-out learns what they add. NumPy only, so the
 ceiling job (no torch) fits the same read-out to the true masks' footprints."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .metrics import MIN_SCENES, cross_validated_r2
-from .particles import READOUT_FEATURES, STAT_NAMES
+from .instances.stats import READOUT_FEATURES, STAT_NAMES
+from .metrics import MIN_SCENES, cross_validated_r2, ridge_fit
 
 READOUT_ALPHAS = (1e-3, 1e-2, 1e-1, 1.0)  # ridge strengths (× N scenes) tried by cross-validation
 
@@ -41,12 +41,7 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
         alpha = max(cv, key=lambda a: np.nanmean(cv[a]))
     else:
         alpha = 1.0
-    mu, sd = x.mean(axis=0), x.std(axis=0)
-    sd = np.where(sd > 0, sd, 1.0)
-    a = np.column_stack([np.ones(len(x)), (x - mu) / sd])
-    reg = alpha * len(x) * np.eye(a.shape[1])
-    reg[0, 0] = 0.0
-    w = np.linalg.solve(a.T @ a + reg, a.T @ y)
+    mu, sd, w = ridge_fit(x, y, alpha)
     return {"features": list(features), "impute": fill.tolist(), "mean": mu.tolist(), "scale": sd.tolist(),
             "weights": w.tolist(), "alpha": float(alpha), "n_scenes": int(len(x)),
             "cv_r2": [float(v) for v in cv[alpha]] if cv else None}

@@ -8,22 +8,37 @@ import time
 from contextlib import nullcontext
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
 from .. import PsdError
 from ..io import atomic_path
 from .data import normalise
-from .models import TargetStats, build_model, main_output
+from .models import TargetStats, main_output
 
 logger = logging.getLogger(__name__)
 
 
 def pick_device(name: str) -> torch.device:
     """`auto`, `cpu`, `cuda`, `cuda:N` or another device PyTorch knows, refused in one line when
-    PyTorch does not know it or this machine does not have it."""
+    PyTorch does not know it or this machine does not have it. `auto` in a SLURM job that was
+    given GPUs but in which CUDA sees none runs on the CPU and logs a warning saying so."""
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        if torch.cuda.is_available():
+            return torch.device("cuda")
+        import os
+
+        env = os.environ
+        given = [f"{k}={env[k]}" for k in ("SLURM_JOB_GPUS", "SLURM_STEP_GPUS") if env.get(k)]
+        if env.get("SLURM_GPUS_ON_NODE", "0") not in ("", "0"):
+            given.append(f"SLURM_GPUS_ON_NODE={env['SLURM_GPUS_ON_NODE']}")
+        if given:  # asked for (--gpus, --gres=gpu) and granted, but unusable: say why the job is slow
+            why = "this PyTorch is built without CUDA" if torch.version.cuda is None else "no CUDA driver or device"
+            visible = env.get("CUDA_VISIBLE_DEVICES", "(unset)")
+            logger.warning(f"device auto: SLURM allocated GPU(s) to this job ({', '.join(given)}; "
+                           f"CUDA_VISIBLE_DEVICES={visible}) but CUDA sees none ({why}); running on the CPU")
+        return torch.device("cpu")
     try:
         dev = torch.device(name)
     except (RuntimeError, ValueError, TypeError):
@@ -252,7 +267,7 @@ def _is_number(v: object, lo: float, hi: float) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and lo < v < hi
 
 
-def _is_stats(v: object) -> bool:
+def is_target_stats(v: object) -> bool:
     """TargetStats as plain data: four lists of three finite numbers, the spreads positive."""
     if not isinstance(v, dict) or set(v) != {"mean", "std", "part_mean", "part_std"}:
         return False
@@ -260,31 +275,36 @@ def _is_stats(v: object) -> bool:
     return ok(v["mean"], -1e9) and ok(v["part_mean"], -1e9) and ok(v["std"], 0) and ok(v["part_std"], 0)
 
 
-META_CHECKS = {  # what a model's meta must hold before anything is built or resized from it
+META_CHECKS = {  # what every model's meta must hold before anything is built or resized from it
     "arch": lambda v: isinstance(v, str) and 0 < len(v) < 100 and v.replace("_", "").isalnum(),
     "input_size": lambda v: _is_int(v, 16, 4096),
     "image_resolution": lambda v: _is_int(v, 16, 65536),
     "mm_per_px": lambda v: _is_number(v, 0, 1e4),
-    "target_stats": _is_stats,
 }
 
 
 def meta_problems(meta: object) -> list[str]:
     """What is wrong with a model's metadata (model.pt's ``meta``, an export's meta.json): the
-    keys predict and evaluate rely on, their types and sane ranges. Empty when it is fine."""
+    keys predict and evaluate rely on, their types and sane ranges, and its estimator's own
+    (`Estimator.meta_problems`). Empty when it is fine."""
+    from .registry import estimator_class
+
     if not isinstance(meta, dict):
         return ["it must hold a JSON object / dict"]
-    instances = meta.get("arch") == "instances"  # the instance estimator: maps, post-processing, read-out
     problems = [f"{k} is missing or not valid (got {str(meta.get(k))[:80]!r})" for k, ok in META_CHECKS.items()
-                if not ok(meta.get(k)) and not (instances and k == "target_stats")]
-    if instances:
-        from .instances import readout_problems
-
-        problems += readout_problems(meta)
-    return problems
+                if not ok(meta.get(k))]
+    if problems:
+        return problems
+    try:
+        return estimator_class(meta["arch"]).meta_problems(meta)
+    except PsdError as e:
+        return [str(e)]
 
 
 def load_model(path: Path, device: torch.device | str = "cpu") -> tuple[nn.Module, dict]:
+    """A model file's network (built by its estimator, `Estimator.build_net`) and its meta."""
+    from .registry import estimator_class
+
     path = Path(path)
     ckpt = load_checkpoint(path)
     problems = meta_problems(ckpt.get("meta"))
@@ -292,16 +312,36 @@ def load_model(path: Path, device: torch.device | str = "cpu") -> tuple[nn.Modul
         raise PsdError(f"{path} is not a psdfactory model: its meta is refused: " + "; ".join(problems))
     try:
         meta = ckpt["meta"]
-        if meta["arch"] == "instances":  # the instance estimator's segmentation network
-            from .instances import net_from_meta
-
-            model = net_from_meta(meta)
-        else:
-            stats = TargetStats(**meta["target_stats"])
-            model, _ = build_model(meta["arch"], stats, "none", size=meta["input_size"])
+        model = estimator_class(meta["arch"]).build_net(meta)
         model.load_state_dict(ckpt["state_dict"])
     except PsdError:
         raise
     except Exception as e:
         raise PsdError(f"{path} is not a psdfactory model ({type(e).__name__}: {e})") from None
     return model.to(device).eval(), meta
+
+
+def torch_runner(module: nn.Module, device: torch.device | str = "cpu", precision: str = "fp32",
+                 channels_last: bool = False):
+    """A network as a function: normalised float N×3×H×W → its outputs as a float32 numpy array,
+    on `device`, under `precision`'s autocast, in `channels_last` memory format if asked."""
+    dev = torch.device(device)
+    fmt = torch.channels_last if channels_last else torch.contiguous_format
+    module = module.to(dev).eval().to(memory_format=fmt)
+
+    def run(x: torch.Tensor) -> np.ndarray:
+        with torch.inference_mode(), autocast(dev, precision):
+            return module(x.to(dev).contiguous(memory_format=fmt)).float().cpu().numpy()
+
+    return run
+
+
+def load_estimator(path: Path, device: torch.device | str = "cpu"):
+    """A model file (`model.pt`) as its estimator (`learn.estimator.Estimator`), its network on
+    `device` in fp32."""
+    from .registry import estimator_class
+
+    net, meta = load_model(path, device)
+    est = estimator_class(meta["arch"])(meta, None, net)
+    est.run = torch_runner(est.inference_module(), torch.device(device))
+    return est

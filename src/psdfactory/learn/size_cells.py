@@ -148,7 +148,7 @@ class ScenesWithSizeCodes(torch.utils.data.Dataset):
     def codes(self, i: int) -> torch.Tensor:
         if i not in self.cache:
             from ..io import read_png
-            from .instances import sizes_px_by_id
+            from .data import sizes_px_by_id
 
             r = self.scenes.rows[i]
             if r["scene_id"] not in self.particles:

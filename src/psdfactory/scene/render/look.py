@@ -18,9 +18,7 @@ from scipy import ndimage
 
 from ... import PsdError
 from ...config import config_fields
-from .cycles import CyclesParams
-
-Range = tuple[float, float]
+from .cycles import CyclesParams, Range
 
 
 @dataclass(frozen=True)

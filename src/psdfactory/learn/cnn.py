@@ -1,0 +1,193 @@
+"""The paper's estimator: a CNN regressor (any torchvision classification model with the ordered
+head of `learn.models`) whose output is d10/d50/d90 in mm.
+
+Training follows the paper's recipe by default: MSE on standardised targets, Adam,
+ReduceLROnPlateau on the validation loss (or a one-cycle schedule, `train.lr_schedule`), random
+90° rotations and flips, early stopping, the best checkpoint kept (`learn.fit`); beside it the
+scale and photometric augmentations and the dense size task (`train.size_cells`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from .. import __version__
+from ..psd import TARGETS
+from .augment import augment_d4, photometric, rescale
+from .data import SceneImages, label_definition, normalise, particles_by_scene, training_rows
+from .estimator import Estimator, Reading
+from .fit import FitTask, fingerprint, fit, write_history
+from .models import TargetStats, build_model, count_parameters, inception_aux_fits, input_size, main_output
+from .runtime import (
+    LrSchedule,
+    is_target_stats,
+    loss_fn,
+    optimise_step,
+    pick_device,
+    predict_batches,
+    save_model,
+    training_precision,
+)
+
+logger = logging.getLogger(__name__)
+
+
+class OutputOnly(nn.Module):
+    """A plain tensor out (d10, d50, d90 in mm), also for InceptionV3's tuple output."""
+
+    def __init__(self, model: nn.Module):
+        super().__init__()
+        self.m = model
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return main_output(self.m(images))
+
+
+@dataclass
+class SizeCells:
+    """The dense size-histogram task of `learn.size_cells` while training: the tap on the
+    backbone's last feature map, the head that reads it, and the loss weight."""
+
+    tap: object
+    head: nn.Module
+    weight: float
+
+    def loss(self, codes: torch.Tensor) -> torch.Tensor:
+        from .size_cells import cell_loss, cell_targets
+
+        f = self.tap.features.float()  # in fp32 whatever the backbone's autocast precision
+        return self.weight * cell_loss(self.head(f), cell_targets(codes.to(f.device), tuple(f.shape[-2:])))
+
+
+def run_epoch(model, loader, stats, opt, sched, device, precision, aux_weight, gen, params,
+              bar=None, cells: SizeCells | None = None) -> float:
+    """One pass over the training images; with `cells` the loader's images carry size codes as a
+    fourth channel (augmented with the image) and the size-histogram loss is added."""
+    model.train()
+    total, n = 0.0, 0
+    for x, y in loader:
+        if params.augment:
+            x = augment_d4(x, gen)
+        if tuple(params.scale_augment) != (1.0, 1.0):
+            x, y = rescale(x, y, tuple(params.scale_augment), gen)
+        codes = x[:, 3] if cells is not None else None
+        x = x[:, :3]
+        if params.photometric > 0:
+            x = photometric(x, gen, params.photometric)
+        x = normalise(x.to(device)).contiguous(memory_format=torch.channels_last)
+        y = stats.standardise(y.to(device))
+
+        def loss_of(out, y=y, codes=codes):
+            loss = loss_fn(out, y, stats, aux_weight)
+            return loss if cells is None else loss + cells.loss(codes)
+
+        loss = optimise_step(model, opt, x, loss_of, device, precision, "train.lr")
+        sched.after_step()
+        total += loss * len(x)
+        n += len(x)
+        if bar is not None:
+            bar.update(len(x))
+            bar.set_postfix(loss=f"{total / n:.4f}")
+    return total / max(n, 1)
+
+
+class CnnRegressor(Estimator):
+    """A torchvision CNN with the ordered regression head: image in, d10/d50/d90 (mm) out."""
+
+    @classmethod
+    def build_net(cls, meta: dict) -> nn.Module:
+        model, _ = build_model(meta["arch"], TargetStats(**meta["target_stats"]), "none", size=meta["input_size"])
+        return model
+
+    @classmethod
+    def meta_problems(cls, meta: dict) -> list[str]:
+        ok = is_target_stats(meta.get("target_stats"))
+        return [] if ok else [f"target_stats is missing or not valid (got {str(meta.get('target_stats'))[:80]!r})"]
+
+    def inference_module(self) -> nn.Module:
+        return OutputOnly(super().inference_module()).eval()
+
+    def read(self, outputs: np.ndarray, mm_per_px: list[float]) -> list[Reading]:
+        return [Reading(np.asarray(o, dtype=float)) for o in np.asarray(outputs).reshape(-1, len(TARGETS))]
+
+    @classmethod
+    def train(cls, params, results_root: Path, out_dir: Path, settings: dict | None = None) -> dict:
+        torch.manual_seed(params.seed)
+        np.random.seed(params.seed % 2**32)
+        device = pick_device(params.device)
+        size = input_size(params.arch, {params.arch: params.input_size})
+
+        train_rows, val_rows, rows = training_rows(results_root, params.datasets)
+        train_ds = SceneImages(results_root, train_rows, size)
+        val_ds = SceneImages(results_root, val_rows, size)
+        stats = TargetStats.from_targets(train_ds.y)
+        model, weights_used = build_model(params.arch, stats, params.pretrained, size=size)
+        if params.arch == "inception_v3" and not inception_aux_fits(size):
+            logger.info(f"inception_v3 at {size} px: auxiliary head dropped (it needs ≥ 299 px)")
+        model = model.to(device).to(memory_format=torch.channels_last)
+        batch = min(params.batch_size, len(train_ds))
+        precision = training_precision(params.precision, device, model, size, batch,
+                                       lambda out: loss_fn(out, torch.zeros(batch, 3), stats, params.aux_loss_weight))
+        cells, fed = None, train_ds
+        if params.size_cells > 0:  # the dense size-histogram task: a head on the last feature map, training only
+            from .size_cells import CellHead, FeatureTap, ScenesWithSizeCodes, feature_channels
+
+            tap = FeatureTap(model, params.arch)
+            cells = SizeCells(tap, CellHead(feature_channels(model, tap, size)).to(device), params.size_cells)
+            fed = ScenesWithSizeCodes(train_ds, particles_by_scene(results_root, params.datasets))
+        trained = list(model.parameters()) + (list(cells.head.parameters()) if cells is not None else [])
+        opt = torch.optim.Adam(trained, lr=params.lr, weight_decay=params.weight_decay)
+        gen = torch.Generator().manual_seed(params.seed)
+        loader_gen = torch.Generator().manual_seed(params.seed + 1)
+        train_loader = torch.utils.data.DataLoader(fed, batch_size=params.batch_size, shuffle=True,
+                                                   generator=loader_gen)
+        sched = LrSchedule(opt, params.lr_schedule, params.epochs, len(train_loader), params.lr_factor,
+                           params.lr_patience)
+        val_loader = torch.utils.data.DataLoader(val_ds, batch_size=params.batch_size)
+
+        def validate() -> dict:
+            pred, y = predict_batches(model, val_loader, device, precision)
+            return {"val_loss": float(nn.functional.mse_loss(stats.standardise(pred), stats.standardise(y))),
+                    "val_mae_mm": float((pred - y).abs().mean())}
+
+        task = FitTask(model, opt, sched, lambda bar: run_epoch(model, train_loader, stats, opt, sched, device,
+                                                                 precision, params.aux_loss_weight, gen, params, bar,
+                                                                 cells),
+                       validate, len(train_ds), "img", modules={"cell_head": cells.head} if cells else {},
+                       generators={"gen": gen, "loader_gen": loader_gen})
+        n_params = count_parameters(model)
+        logger.info(f"training {params.arch} ({n_params / 1e6:.1f} M parameters, weights: {weights_used}) on "
+                    f"{len(train_ds)} train / {len(val_ds)} val scenes of {', '.join(params.datasets)}, input {size} "
+                    f"px, {device} {precision}, up to {params.epochs} epochs")
+        meta = {
+            "arch": params.arch,
+            "input_size": size,
+            "target_stats": asdict(stats),
+            "targets": list(TARGETS),
+            **label_definition(train_rows + val_rows),
+            "mm_per_px": float(np.median([r["mm_per_px"] for r in train_rows])),
+            "image_resolution": int(np.median([r["resolution"] for r in train_rows])),
+            "weights": weights_used,
+            "params": asdict(params),
+            "n_parameters": n_params,
+            "psdfactory_version": __version__,
+        }
+        ids = [(r["scene_id"], r["split"], *(r[t] for t in TARGETS)) for r in rows]
+        res = fit(task, params.arch, params.epochs, params.early_stopping_patience, out_dir,
+                  fingerprint(asdict(params), ids), meta)
+        if cells is not None:
+            cells.tap.remove()
+        summary = {**meta, "epoch": res.best_epoch, "val_loss": res.best_loss, "best_epoch": res.best_epoch,
+                   "epochs_run": len(res.history), "stop_reason": res.stop_reason, "precision": precision,
+                   "device": str(device)}
+        save_model(out_dir / "model.pt", model, summary)
+        write_history(res.history, out_dir / "history.csv")
+        logger.info(f"done: best val loss {res.best_loss:.4f} at epoch {res.best_epoch} ({res.stop_reason}); wrote "
+                    f"{out_dir / 'model.pt'}")
+        return summary

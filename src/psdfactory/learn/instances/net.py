@@ -1,0 +1,117 @@
+"""The instance network: a ResNet-18 trunk cut at stride 8 and a light U-Net decoder predicting
+the maps of `targets.MAPS` at the input's resolution, any size."""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from ... import PsdError
+from . import ARCH
+from .targets import MAPS, MASK_MAPS
+
+logger = logging.getLogger(__name__)
+TRUNK = "resnet18"
+DECODER = (64, 32, 16)  # channels of the decoder stages at strides 4, 2, 1
+FULL_RES = 8  # channels of the full-resolution skip
+
+
+# ---------------------------------------------------------------------------------------------
+# the network
+
+
+def _cbr(cin: int, cout: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class InstanceNet(nn.Module):
+    """ResNet-18 trunk (stem, layer1, layer2; stride 8) + U-Net decoder → N×C×H×W logits (the
+    first `n_maps` of MAPS) at the input's size, for any H, W ≥ 1."""
+
+    def __init__(self, trunk: nn.Module | None = None, decoder: tuple[int, ...] = DECODER, full: int = FULL_RES,
+                 n_maps: int = len(MAPS)):
+        super().__init__()
+        if trunk is None:
+            import torchvision
+
+            trunk = torchvision.models.resnet18(weights=None)
+        self.stem = nn.Sequential(trunk.conv1, trunk.bn1, trunk.relu)  # stride 2, 64
+        self.pool = trunk.maxpool
+        self.layer1 = trunk.layer1  # stride 4, 64
+        self.layer2 = trunk.layer2  # stride 8, 128
+        self.full = _cbr(3, full)
+        skips = (64, 64, full)
+        ups, prev = [], 128
+        for c, s in zip(decoder, skips, strict=True):
+            ups.append(_cbr(prev + s, c))
+            prev = c
+        self.up = nn.ModuleList(ups)
+        self.head = nn.Conv2d(prev, n_maps, 1)
+        with torch.no_grad():  # start near the class balance: a dense bed is mostly foreground, rarely boundary
+            self.head.bias.copy_(torch.tensor([1.0, -1.0, 0.0, 0.0][:n_maps]))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f0 = self.full(x)
+        f1 = self.stem(x)
+        f2 = self.layer1(self.pool(f1))
+        y = self.layer2(f2)
+        for up, skip in zip(self.up, (f2, f1, f0), strict=True):
+            y = F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            y = up(torch.cat([y, skip], dim=1))
+        return self.head(y)
+
+
+class InstanceMaps(nn.Module):
+    """The network with its logits turned into maps in [0, 1] (what inference and ONNX use)."""
+
+    def __init__(self, net: nn.Module):
+        super().__init__()
+        self.net = net
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(self.net(images).float())
+
+
+def build_instance_net(pretrained: str = "none") -> tuple[InstanceNet, str]:
+    """The instance network; its trunk with ImageNet weights as `train.pretrained` says (auto:
+    when they can be had, else from scratch with a warning). Returns (net, weights used)."""
+    import warnings
+
+    import torchvision
+
+    from ..models import load_imagenet_weights
+
+    trunk = torchvision.models.resnet18(weights=None)
+    used = "none (trained from scratch)"
+    if pretrained in ("imagenet", "auto"):
+        try:
+            trunk.load_state_dict(load_imagenet_weights(TRUNK))
+            used = f"imagenet ({TRUNK} trunk)"
+        except PsdError as e:
+            if pretrained == "imagenet":
+                raise
+            msg = (f"train.pretrained: auto — no ImageNet weights for the {TRUNK} trunk of {ARCH}; "
+                   f"training from scratch. ({e})")
+            warnings.warn(msg, stacklevel=2)
+            logger.warning(msg)
+            used = "none (auto: ImageNet weights unavailable, trained from scratch)"
+    elif pretrained != "none":
+        raise PsdError(f"train.pretrained must be auto, imagenet or none, got {pretrained!r}")
+    return InstanceNet(trunk, n_maps=len(MAPS)), used
+
+
+
+# ---------------------------------------------------------------------------------------------
+# model files
+
+
+def net_from_meta(meta: dict) -> InstanceNet:
+    """An untrained InstanceNet of the shape a model file's meta describes."""
+    if meta.get("trunk", TRUNK) != TRUNK:
+        raise PsdError(f"unknown trunk {meta.get('trunk')!r} for {ARCH}")
+    return InstanceNet(decoder=tuple(meta.get("decoder", DECODER)), full=int(meta.get("full_res_channels", FULL_RES)),
+                       n_maps=len(meta.get("maps", MASK_MAPS)))
+

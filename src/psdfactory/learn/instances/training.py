@@ -1,0 +1,238 @@
+"""Training of the instance estimator: random crops of the training split with flips / 90°
+rotations on image and targets and photometric jitter on the image, the shared loop of
+`learn.fit` (model selection by validation loss, resumable); then the post-processing picked on
+the validation masks and the read-out fitted on the training and validation scenes' predicted
+instances, all stored in the model file's meta."""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ... import PsdError, __version__
+from ...config import config_fields
+from ...io import read_png
+from ...psd import NAMES, SOLID_DEFINITIONS, TARGETS, definition_targets
+from ..augment import TTA_VIEWS, photometric
+from ..data import label_definition, normalise, particles_by_scene, training_rows
+from ..data import targets as label_targets
+from ..fit import FitTask, fingerprint, fit, write_history
+from ..metrics import regression_metrics
+from ..models import count_parameters
+from ..readout import apply_readout, fit_readout
+from ..runtime import LrSchedule, autocast, optimise_step, pick_device, save_model, torch_runner, training_precision
+from . import ARCH
+from .measure import SIEVE_METHODS
+from .net import DECODER, FULL_RES, TRUNK, InstanceMaps, build_instance_net
+from .scoring import f1_score, match_instances
+from .stats import READOUTS
+from .targets import MAPS, boundary_weight, instance_loss, load_scenes, random_crops
+from .watershed import DEFAULT_POSTPROCESS, POSTPROCESS_GRID, postprocess
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class InstanceSettings:
+    """`train.instances` in the config: what only the instance estimator's training uses
+    (defaults: the schema's)."""
+
+    crops_per_image: int  # random crops of each training image per epoch
+    photometric: float  # strength of the camera/light augmentation of the image (0 = off)
+    lr: float  # Adam learning rate
+    sieve_method: str  # min_feret | ellipse_minor | size_map
+    readout: str  # footprints | footprints+size_map: what the calibrated read-out reads (READOUTS)
+    tta: str  # none | flips | d4: the views of each image whose maps are averaged (TTA_VIEWS)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> InstanceSettings:
+        s = cls(**config_fields(cls, d, "train.instances"))
+        if s.sieve_method not in SIEVE_METHODS:
+            raise PsdError(f"train.instances.sieve_method must be one of {', '.join(SIEVE_METHODS)}")
+        if s.readout not in READOUTS:
+            raise PsdError(f"train.instances.readout must be one of {', '.join(READOUTS)}")
+        if s.tta not in TTA_VIEWS:
+            raise PsdError(f"train.instances.tta must be one of {', '.join(TTA_VIEWS)}")
+        return s
+
+
+
+def val_loss(model, images, targets, device, precision, pw: float, batch: int = 4) -> float:
+    model.eval()
+    total = 0.0
+    with torch.inference_mode():
+        for i in range(0, len(images), batch):
+            x = normalise(images[i : i + batch].to(device))
+            with autocast(device, precision):
+                out = model(x)
+            total += float(instance_loss(out, targets[i : i + batch].to(device), pw)[0]) * len(x)
+    return total / max(len(images), 1)
+
+
+def pick_postprocess(maps: np.ndarray, masks: list[np.ndarray], grid: dict = POSTPROCESS_GRID) -> tuple[dict, float]:
+    """The post-processing settings (from `grid` over DEFAULT_POSTPROCESS) with the best pooled F1
+    at IoU 0.5 against the true masks."""
+    best, best_f1 = dict(DEFAULT_POSTPROCESS), -1.0
+    keys = list(grid)
+    for values in itertools.product(*(grid[k] for k in keys)):
+        s = {**DEFAULT_POSTPROCESS, **dict(zip(keys, values, strict=True))}
+        tp = n_pred = n_true = 0
+        for mp, true in zip(maps, masks, strict=True):
+            res = match_instances(postprocess(mp, s), true)
+            tp, n_pred, n_true = tp + res.n_matched, n_pred + res.n_pred, n_true + res.n_true
+        f1 = f1_score(tp, n_pred, n_true) if n_pred + n_true else 0.0
+        if f1 > best_f1:
+            best, best_f1 = s, f1
+    logger.info(f"post-processing picked on the validation masks: {best} (F1 at IoU 0.5: {best_f1:.3f})")
+    return best, best_f1
+
+
+def other_readouts(stats: np.ndarray, rows: list[dict], features: tuple[str, ...]) -> dict:
+    """Read-outs of the scenes' labels in every other solid size definition (same weighting), from
+    the same instance statistics: the estimator reads its own definition and estimates these."""
+    own = label_definition(rows)
+    out = {}
+    for d in SOLID_DEFINITIONS:
+        cols = definition_targets(d, own["weighting"])
+        y = np.array([[r.get(c, np.nan) for c in cols] for r in rows], dtype=float)
+        if d != own["size_definition"] and np.isfinite(y).all():
+            out[d] = fit_readout(stats, y, features=features)
+    return out
+
+
+def train_instances(params, settings: InstanceSettings, results_root: Path, out_dir: Path, estimator: type) -> dict:
+    """Train the instance estimator (`params`: learn.train.TrainParams with arch 'instances') on
+    a dataset's train split, select by validation loss, pick the post-processing on the
+    validation masks, fit the read-out on the training + validation scenes; write model.pt and
+    history.csv (its last row's val_mae_mm: the calibrated validation error, in the read-out's fit).
+    `estimator`: the InstanceEstimator class, which the calibration runs as evaluate and predict do."""
+    torch.manual_seed(params.seed)
+    np.random.seed(params.seed % 2**32)
+    device = pick_device(params.device)
+    train_rows, val_rows, rows = training_rows(results_root, params.datasets)
+    t_load = time.perf_counter()
+    particles = particles_by_scene(results_root, params.datasets)  # the size map's targets
+    x_train, t_train = load_scenes(results_root, train_rows, particles)
+    x_val, t_val = load_scenes(results_root, val_rows, particles)
+    crop = min(int(params.input_size), *x_train.shape[-2:])
+    pw = boundary_weight(t_train)
+    model, weights_used = build_instance_net(params.pretrained)
+    model = model.to(device).to(memory_format=torch.channels_last)
+    batch = min(params.batch_size, len(x_train) * settings.crops_per_image)
+    dummy = torch.zeros(batch, len(MAPS), crop, crop)
+    precision = training_precision(params.precision, device, model, crop, batch,
+                                   lambda out: instance_loss(out, dummy, pw)[0])
+    n_params = count_parameters(model)
+    logger.info(f"training {ARCH} ({TRUNK} trunk + U-Net decoder, {n_params / 1e6:.2f} M parameters, weights: "
+                f"{weights_used}) on {len(train_rows)} train / {len(val_rows)} val scenes of "
+                f"{', '.join(params.datasets)}: {settings.crops_per_image} random {crop}-px crops per image and "
+                f"epoch, {device} {precision}, {params.epochs} epochs, lr {settings.lr} ({params.lr_schedule}), "
+                f"boundary weight {pw:.1f} (targets made in {time.perf_counter() - t_load:.1f} s)")
+    opt = torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=params.weight_decay)
+    steps_per_epoch = math.ceil(len(x_train) * settings.crops_per_image / params.batch_size)
+    sched = LrSchedule(opt, params.lr_schedule, params.epochs, steps_per_epoch, params.lr_factor, params.lr_patience)
+    gen = torch.Generator().manual_seed(params.seed)
+
+    def train_epoch(bar) -> float:
+        model.train()
+        order = torch.cat([torch.randperm(len(x_train), generator=gen) for _ in range(settings.crops_per_image)])
+        total, n = 0.0, 0
+        for b in range(0, len(order), params.batch_size):
+            x, t = random_crops(x_train, t_train, order[b : b + params.batch_size], crop, gen, params.augment)
+            if settings.photometric > 0:
+                x = photometric(x, gen, settings.photometric)
+            x, t = normalise(x.to(device)), t.to(device)
+            loss = optimise_step(model, opt, x, lambda out, t=t: instance_loss(out, t, pw)[0], device, precision,
+                                 "train.instances.lr")
+            sched.after_step()
+            total += loss * len(x)
+            n += len(x)
+            bar.update(len(x))
+            bar.set_postfix(loss=f"{total / n:.4f}")
+        return total / max(n, 1)
+
+    task = FitTask(model, opt, sched, train_epoch,
+                   lambda: {"val_loss": val_loss(model, x_val, t_val, device, precision, pw)},
+                   len(x_train) * settings.crops_per_image, "crop", generators={"gen": gen})
+    ids = [(r["scene_id"], r["split"], *(r[t] for t in TARGETS)) for r in rows]
+    fp = fingerprint({**asdict(params), "settings": asdict(settings)}, ids)
+    res = fit(task, ARCH, params.epochs, params.early_stopping_patience, out_dir, fp,
+              {"arch": ARCH, "maps": list(MAPS)})
+    model.eval()
+
+    # calibration: post-processing on the validation masks, the read-out on the training split
+    t0 = time.perf_counter()
+    meta = {"arch": ARCH, "weights": weights_used, "sieve_method": settings.sieve_method, "readout": None,
+            "postprocess": dict(DEFAULT_POSTPROCESS), "tta": settings.tta}
+    est = estimator(meta, torch_runner(InstanceMaps(model), device), model)  # as evaluate and predict run it
+    val_maps = est.all_maps(x_val)
+    val_masks = [read_png(Path(results_root) / r["mask_path"]) for r in val_rows]
+    post, val_f1 = pick_postprocess(val_maps, val_masks)
+    est.post = post
+    train_maps = est.all_maps(x_train)
+    train_res = [est.analyse_maps(mp, float(r["mm_per_px"])) for mp, r in zip(train_maps, train_rows, strict=True)]
+    val_res = [est.analyse_maps(mp, float(r["mm_per_px"])) for mp, r in zip(val_maps, val_rows, strict=True)]
+    y_train, y_val = label_targets(train_rows).numpy(), label_targets(val_rows).numpy()
+    # the read-out is fitted on the training and the validation scenes: the network has learnt
+    # the training images, so its instances there are better than on new images; the validation
+    # images show the read-out what the network makes of images it has not seen
+    stats = np.stack([r.stats for r in train_res + val_res])
+    readout = fit_readout(stats, np.concatenate([y_train, y_val]), features=READOUTS[settings.readout])
+    readouts = other_readouts(stats, train_rows + val_rows, READOUTS[settings.readout])
+    val_cal = regression_metrics(y_val, apply_readout(readout, np.stack([r.stats for r in val_res])))
+    val_raw = regression_metrics(y_val, np.nan_to_num(np.stack([r.raw for r in val_res])))
+    history = res.history
+    history[-1]["val_mae_mm"] = val_cal["overall"]["mae"]
+    write_history(history, out_dir / "history.csv")
+    r2s = {k: " / ".join(f"{m[n]['r2']:.3f}" for n in NAMES) for k, m in (("cal", val_cal), ("raw", val_raw))}
+    cv = " / ".join(f"{v:.3f}" for v in readout["cv_r2"]) if readout["cv_r2"] else "n/a (too few scenes)"
+    logger.info(f"read-out ({settings.readout}) fitted on {len(train_rows)} training + {len(val_rows)} validation "
+                f"scenes (ridge {readout['alpha']:g}): cross-validated R² {cv}; validation R² calibrated (in the "
+                f"fit) {r2s['cal']}, raw {r2s['raw']} ({time.perf_counter() - t0:.0f} s)")
+
+    res_px = int(np.median([r["resolution"] for r in train_rows]))
+    summary = {
+        "arch": ARCH,
+        "trunk": TRUNK,
+        "decoder": list(DECODER),
+        "full_res_channels": FULL_RES,
+        "input_size": res_px,  # inference runs on whole images at the training images' scale
+        "crop_size": crop,
+        "image_resolution": res_px,
+        "mm_per_px": float(np.median([r["mm_per_px"] for r in train_rows])),
+        "targets": list(TARGETS),
+        **label_definition(train_rows + val_rows),
+        "weights": weights_used,
+        "maps": list(MAPS),
+        "postprocess": post,
+        "sieve_method": settings.sieve_method,
+        "readout_features": settings.readout,
+        "tta": settings.tta,
+        "readout": readout,
+        "readouts": readouts,  # the other solid size definitions (predict --size-definition)
+        "boundary_pos_weight": pw,
+        # the validation scenes are in the read-out's fit: its out-of-fold R² is the honest figure
+        "val": {"f1": val_f1, "r2_readout_cv": readout["cv_r2"],
+                "r2_calibrated_in_fit": [val_cal[n]["r2"] for n in NAMES],
+                "r2_raw": [val_raw[n]["r2"] for n in NAMES]},
+        "params": asdict(params),
+        "n_parameters": n_params,
+        "psdfactory_version": __version__,
+        "best_epoch": res.best_epoch,
+        "epochs_run": len(history),
+        "stop_reason": res.stop_reason,
+        "train_seconds": res.seconds,
+        "precision": precision,
+        "device": str(device),
+    }
+    save_model(out_dir / "model.pt", model, summary)
+    logger.info(f"done: best val loss {res.best_loss:.4f} at epoch {res.best_epoch} ({res.stop_reason}), "
+                f"{res.seconds:.0f} s of training; wrote {out_dir / 'model.pt'}")
+    return summary
