@@ -19,6 +19,11 @@ spread, so that a figure is quoted as mean ± spread, not as one draw:
    seeds are printed and written as Markdown (spread.md) and JSON (spread.json) under --out:
    mean ± half-range, i.e. (max − min) / 2, and [min, max] in the JSON.
 
+Each model's seeds run back to back, the models in the order of --archs, and both files are
+rewritten after every run (marked partial until the last), so a run cut short still holds the
+whole spread of the models it got through; a row's `seeds` column says how many runs it holds
+(one run is shown without a spread).
+
 A run whose model.pt and metrics.json exist (with the same params) is not redone, so a killed run
 resumes where it stopped (training itself resumes from its checkpoints/last.pt). Progress lines,
 each with the elapsed time and an ETA, go to stdout; each command's own log goes to the run's
@@ -89,8 +94,10 @@ class Progress:
         print(f"[{fmt_time(time.monotonic() - self.t0)}] [{self.next + 1}/{len(self.jobs)}] {msg} — "
               f"{self.eta(current_elapsed)}", flush=True)
 
-    def finish(self, kind: str, seconds: float) -> None:
-        self.done.setdefault(kind, []).append(seconds)
+    def finish(self, kind: str, seconds: float | None) -> None:
+        """One run done (`seconds` None: kept from before, not timed now)."""
+        if seconds:
+            self.done.setdefault(kind, []).append(seconds)
         self.next += 1
 
 
@@ -164,20 +171,56 @@ def dataset_label(cfg: dict, ds: str, n_scenes: int | None) -> str:
 def markdown(summary: dict) -> str:
     """One table: per model and dataset, R² and relative error per target, mean ± half-range."""
     seeds = summary["seeds"]
-    lines = [f"Per-target R² and mean relative error |pred − true| / true, mean ± (max − min) / 2 over "
-             f"{len(seeds)} training seeds ({', '.join(map(str, seeds))}); `{summary['command']}`, "
-             f"{summary['date'][:10]}, {summary['cpu']}.", "",
-             "| model | test scenes | R² d10 | R² d50 | R² d90 | rel. error d10 | rel. error d50 | rel. error d90 |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [f"Per-target R² and mean relative error |pred − true| / true, mean ± (max − min) / 2 over the "
+             f"training seeds of each row (of {', '.join(map(str, seeds))}; a row of one seed is one run, no "
+             f"spread); `{summary['command']}`, {summary['date'][:10]}, commit {summary['commit']}, "
+             f"{summary['cpu']}." + ("" if summary["complete"] else " **Partial: not every run is done yet.**"), "",
+             "| model | test scenes | seeds | R² d10 | R² d50 | R² d90 | "
+             "rel. error d10 | rel. error d50 | rel. error d90 |",
+             "|---|---|---|---|---|---|---|---|---|"]
+
+    def cell(x: dict, scale: float = 1.0, digits: int = 2, unit: str = "") -> str:
+        if x["n"] == 1:
+            return f"{scale * x['mean']:.{digits}f}{unit}"
+        return f"{scale * x['mean']:.{digits}f} ± {scale * x['half_range']:.{digits}f}{unit}"
+
     for arch, per_ds in summary["models"].items():
         for ds, m in per_ds.items():
-            r2 = [f"{m[n]['r2']['mean']:.2f} ± {m[n]['r2']['half_range']:.2f}" for n in NAMES]
-            rel = [f"{100 * m[n]['rel_err']['mean']:.0f} ± {100 * m[n]['rel_err']['half_range']:.0f} %" for n in NAMES]
+            r2 = [cell(m[n]["r2"]) for n in NAMES]
+            rel = [cell(m[n]["rel_err"], 100, 0, " %") for n in NAMES]
             lines.append(f"| {ARCH_LABELS.get(arch, arch)} | {summary['datasets'][ds]['label']} | "
-                         + " | ".join(r2 + rel) + " |")
+                         f"{m['d10']['r2']['n']} | " + " | ".join(r2 + rel) + " |")
     lines += ["", "Training minutes per run (mean over seeds): "
               + ", ".join(f"{ARCH_LABELS.get(a, a)} {t:.1f}" for a, t in summary["train_minutes"].items()) + "."]
     return "\n".join(lines) + "\n"
+
+
+def write_summary(out: Path, meta: dict, archs: list[str], seeds: list[int], datasets: list[str], cfg: dict,
+                  metrics: dict, train_minutes: dict, complete: bool) -> str:
+    """spread.json and spread.md from the runs done so far (rewritten after each one)."""
+    summary: dict = {**meta, "seeds": seeds, "complete": complete,
+                     "date": datetime.now(UTC).isoformat(timespec="seconds"),
+                     "statistic": "mean, min, max and half_range = (max - min) / 2 over the seeds",
+                     "datasets": {}, "models": {},
+                     "train_minutes": {arch: sum(t) / len(t) for arch, t in train_minutes.items() if t}}
+    for arch in archs:
+        per_ds: dict = {}
+        for ds in datasets:
+            runs = [metrics[arch][s]["datasets"][ds] for s in seeds
+                    if s in metrics.get(arch, {}) and ds in metrics[arch][s]["datasets"]]
+            if not runs:
+                continue
+            summary["datasets"].setdefault(ds, {"n_scenes": runs[0]["n"],
+                                                "label": dataset_label(cfg, ds, runs[0]["n"])})
+            per_ds[ds] = {n: {k: aggregate([r[n][k] for r in runs]) for k in ("r2", "rel_err")} for n in NAMES}
+            per_ds[ds]["seeds"] = [s for s in seeds if s in metrics.get(arch, {})]
+        if per_ds:
+            summary["models"][arch] = per_ds
+    out.mkdir(parents=True, exist_ok=True)
+    md = markdown(summary)
+    (out / "spread.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")
+    (out / "spread.md").write_text(md, encoding="utf-8")
+    return md
 
 
 def main() -> None:
@@ -226,13 +269,19 @@ def main() -> None:
     if missing:
         sys.exit(f"no manifests for {', '.join(sorted(missing))} under {results}: run without --no-snakemake")
 
-    jobs = [(kind, f"seed {s} {arch}") for s in seeds for arch in archs for kind in (f"train {arch}", f"eval {arch}")]
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True)
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "src", "rules"], cwd=REPO,
+                           capture_output=True, text=True).stdout.strip()
+    meta = {"config": str(Path(a.config)), "command": command, "cpu": cpu,
+            "commit": commit.stdout.strip() + (" (+ uncommitted changes in src/ or rules/)" if dirty else "")}
+    # each model's seeds back to back, models in the order of --archs: a partial run holds whole spreads
+    jobs = [(kind, f"seed {s} {arch}") for arch in archs for s in seeds for kind in (f"train {arch}", f"eval {arch}")]
     progress = Progress(jobs)
     psd = psdfactory_cmd()
     metrics: dict = {}  # arch -> seed -> metrics.json
     train_minutes: dict = {}
-    for seed in seeds:
-        for arch in archs:
+    for arch in archs:
+        for seed in seeds:
             run = results / "seed_spread" / str(seed) / arch
             run.mkdir(parents=True, exist_ok=True)
             params = psd_config.train_params(cfg, arch)
@@ -250,7 +299,7 @@ def main() -> None:
             timing = json.loads(info.read_text(encoding="utf-8")) if info.is_file() else {}
             if (run / "model.pt").is_file():
                 progress.say(f"{label}: trained before, kept")
-                progress.finish(f"train {arch}", timing.get("train_s", 0.0))
+                progress.finish(f"train {arch}", None)
             else:
                 progress.say(f"{label}: training ({params['epochs']} epochs)")
                 cmd = [*psd, "--log", str(run / "train.log"), "train", "--params", pjson, "--results", str(results),
@@ -261,7 +310,7 @@ def main() -> None:
             ev = run / "eval"
             if (ev / "metrics.json").is_file():
                 progress.say(f"{label}: evaluated before, kept")
-                progress.finish(f"eval {arch}", timing.get("eval_s", 0.0))
+                progress.finish(f"eval {arch}", None)
             else:
                 progress.say(f"{label}: evaluating on {', '.join(datasets)}")
                 ev.mkdir(exist_ok=True)
@@ -274,32 +323,15 @@ def main() -> None:
                 progress.finish(f"eval {arch}", timing["eval_s"])
             m = json.loads((ev / "metrics.json").read_text(encoding="utf-8"))
             metrics.setdefault(arch, {})[seed] = m
-            train_minutes.setdefault(arch, []).append(timing.get("train_s", 0.0) / 60)
+            if timing.get("train_s"):
+                train_minutes.setdefault(arch, []).append(timing["train_s"] / 60)
             r = m["datasets"]
             print("    " + "; ".join(f"{d}: R² " + " / ".join(f"{r[d][n]['r2']:.3f}" for n in NAMES)
                                      for d in datasets if d in r), flush=True)
+            write_summary(out, meta, archs, seeds, datasets, cfg, metrics, train_minutes, complete=False)
 
-    summary: dict = {"config": str(Path(a.config)), "seeds": seeds, "command": command,
-                     "date": datetime.now(UTC).isoformat(timespec="seconds"), "cpu": cpu,
-                     "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
-                                              text=True).stdout.strip(),
-                     "statistic": "mean, min, max and half_range = (max - min) / 2 over the seeds",
-                     "datasets": {}, "models": {},
-                     "train_minutes": {arch: sum(t) / len(t) for arch, t in train_minutes.items()}}
-    for arch in archs:
-        per_ds: dict = {}
-        for ds in datasets:
-            runs = [metrics[arch][s]["datasets"][ds] for s in seeds if ds in metrics[arch][s]["datasets"]]
-            if not runs:
-                continue
-            summary["datasets"].setdefault(ds, {"n_scenes": runs[0]["n"],
-                                                "label": dataset_label(cfg, ds, runs[0]["n"])})
-            per_ds[ds] = {n: {k: aggregate([r[n][k] for r in runs]) for k in ("r2", "rel_err")} for n in NAMES}
-        summary["models"][arch] = per_ds
-    out.mkdir(parents=True, exist_ok=True)
-    md = markdown(summary)
-    (out / "spread.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")
-    (out / "spread.md").write_text(md, encoding="utf-8")
+    md = write_summary(out, meta, archs, seeds, datasets, cfg, metrics, train_minutes, complete=True)
+
     print(f"\n{md}\nwritten: {out / 'spread.md'}, {out / 'spread.json'}", flush=True)
 
 
