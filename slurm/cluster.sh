@@ -10,6 +10,15 @@
 # Idempotent: `up` on a running cluster does nothing. Needs root (apt-get, daemons).
 # PID 1 is not systemd here, so the daemons are started directly; slurm runs as root with
 # proctrack/linuxproc and task/none. State, configs, logs and PID files live in $PSD_SLURM_DIR.
+#
+# The node declares PSD_SLURM_GPUS (default 2) GPUs as a generic resource (gres/gpu) whether or
+# not the machine has any, so that jobs asking for a GPU (the profile's train, evaluate and
+# benchmark: --gpus=1) are accepted, queued at most one per declared GPU, accounted (sacct's
+# AllocTRES shows gres/gpu=1) and run. Slurm 22.05 drops a GPU without a device file from the
+# node's count ("Removing file-less GPU"), so each stands in as $PSD_SLURM_DIR/dev/gpuN, a
+# symlink to /dev/null: a character device that Slurm accepts and nothing opens. No CUDA device
+# appears in the jobs unless the machine has one; psdfactory's device `auto` then runs on the
+# CPU and says so in the job's log.
 set -euo pipefail
 
 STATE=${PSD_SLURM_DIR:-/var/tmp/psdfactory-slurm}
@@ -20,6 +29,7 @@ DB_PORT=${PSD_SLURM_DB_PORT:-33061}
 CTLD_PORT=${PSD_SLURM_CTLD_PORT:-6817}
 SLURMD_PORT=${PSD_SLURM_SLURMD_PORT:-6818}
 DBD_PORT=${PSD_SLURM_DBD_PORT:-6819}
+GPUS=${PSD_SLURM_GPUS:-2}
 HOST=$(hostname -s)
 CONF=$STATE/etc/slurm.conf
 export SLURM_CONF=$CONF
@@ -53,6 +63,7 @@ wait_for() {  # wait_for SECONDS DESCRIPTION COMMAND...
 }
 
 write_configs() {
+    if ! [[ $GPUS =~ ^[1-9][0-9]?$ ]]; then log "PSD_SLURM_GPUS must be a whole number from 1 to 99, not '$GPUS'"; exit 2; fi
     mkdir -p "$STATE"/{etc,run,log,spool/ctld,spool/d,munge,db}
     local cpus mem
     cpus=$(nproc)
@@ -85,15 +96,24 @@ AccountingStorageType=accounting_storage/slurmdbd
 AccountingStorageHost=localhost
 AccountingStoragePort=$DBD_PORT
 AccountingStorageEnforce=associations
+AccountingStorageTRES=gres/gpu
 JobCompType=jobcomp/none
 MinJobAge=300
 KillWait=5
 InactiveLimit=0
 SlurmctldTimeout=30
 SlurmdTimeout=30
-NodeName=$HOST CPUs=$cpus RealMemory=$mem State=UNKNOWN
+GresTypes=gpu
+NodeName=$HOST CPUs=$cpus RealMemory=$mem Gres=gpu:$GPUS State=UNKNOWN
 PartitionName=$PARTITION Nodes=$HOST Default=YES MaxTime=INFINITE State=UP
 CONF
+    # slurmd reads gres.conf beside slurm.conf; AutoDetect=off: no probing for real GPUs (NVML)
+    rm -rf "$STATE/dev" && mkdir -p "$STATE/dev"
+    printf 'AutoDetect=off\n' > "$STATE/etc/gres.conf"
+    for i in $(seq 0 $((GPUS - 1))); do
+        ln -s /dev/null "$STATE/dev/gpu$i"
+        printf 'NodeName=%s Name=gpu File=%s\n' "$HOST" "$STATE/dev/gpu$i" >> "$STATE/etc/gres.conf"
+    done
     cat > "$STATE/etc/slurmdbd.conf" <<CONF
 AuthType=auth/munge
 DbdHost=localhost
@@ -162,7 +182,7 @@ start_slurm() {
         wait_for 30 slurmctld scontrol ping
     fi
     if ! alive slurmd; then
-        slurmd -f "$CONF"
+        slurmd -f "$CONF" || { log "slurmd did not start (a bad gres.conf?); see $STATE/log/slurmd.log"; return 1; }
         # slurmd returns before it writes its PID file: wait for the node to report in
     fi
     wait_for 60 "node $HOST to be idle" bash -c "sinfo -h -N -o %T | grep -qE '^(idle|mixed|allocated)'"

@@ -1,17 +1,23 @@
 """`snakemake --profile slurm` on a real single-node SLURM cluster (slurm/cluster.sh).
 
 Marked `slurm`; CI runs it. It needs root (the script installs and starts slurmctld, slurmd,
-slurmdbd, munge and a private MariaDB).
+slurmdbd, munge and a private MariaDB). The cluster's node declares two GPUs (gres/gpu, stand-in
+devices), so the profile's GPU jobs are submitted, scheduled and accounted as on a GPU cluster,
+and run on the CPU.
 """
 
 import copy
 import filecmp
+import json
+import logging
 import os
+import re
 import subprocess
 import time
 
 import pyarrow.parquet as pq
 import pytest
+import yaml
 
 from .workflow_helpers import REPO, snakemake, write_config
 
@@ -66,7 +72,7 @@ def cluster():
     # its own ports, so that it runs beside a cluster the user brought up (slurm/cluster.sh up)
     ports = dict(zip(("PSD_SLURM_DB_PORT", "PSD_SLURM_CTLD_PORT", "PSD_SLURM_SLURMD_PORT", "PSD_SLURM_DBD_PORT"),
                      map(str, free_ports(4)), strict=True))
-    env = dict(os.environ, PSD_SLURM_DIR=STATE, **ports)
+    env = dict(os.environ, PSD_SLURM_DIR=STATE, PSD_SLURM_GPUS="2", **ports)  # two GPU jobs side by side
     up = subprocess.run(["bash", str(CLUSTER), "up"], env=env, capture_output=True, text=True, timeout=1200)
     if up.returncode != 0:  # leave no half-started daemons behind for the next run
         subprocess.run(["bash", str(CLUSTER), "down"], env=env, capture_output=True, text=True, timeout=120)
@@ -139,3 +145,105 @@ def test_failing_job_is_retried_then_the_run_fails(cluster, tmp_path):
     assert len(failed) >= 2, f"expected the first try and one retry to fail on SLURM: {failed}"
     log = (tmp_path / "results" / "train" / "logs" / "simulate" / "train-000000.log").read_text()
     assert "quality bounds" in log
+
+
+# ---- the whole workflow: scenes, training, evaluation, benchmark and report on SLURM ----------
+
+GPU_RULES = ("train", "evaluate", "benchmark")
+
+WHOLE = {  # the smallest run with a val and a test scene (seed 7: 2 train / 2 val / 1 test)
+    "seed": 7,
+    "scenes_per_job": 5,  # 4 batch jobs (the one job group of 20 scene jobs ran them one after another: 2.3 min)
+    "datasets": {"train": {"n_scenes": 5, "shard_size": 5, "table_size": 50, "count": [20, 30],
+                           "split": {"train": 0.5, "val": 0.25, "test": 0.25},
+                           "size": {"mean": [4, 7], "sigma": [2, 3], "bounds": [1, 10]}}},
+    "render": {"resolution": 32},
+    "train": {"epochs": 1, "batch_size": 2, "precision": "fp32", "pretrained": "none",
+              "architectures": ["instances"], "input_size": {"instances": 32}},  # the CNNs: test_workflow
+    "benchmark": {"batch_size": 2, "seconds": 0.05, "repeats": 1},
+    "show": {"compare_backends": 0, "n_scenes": 2},
+}
+
+
+def small_node_profile(dest):
+    """slurm/config.yaml for the test cluster's one node (2 CPUs): the GPU rules keep the profile's
+    GPU and partition but ask for 1 CPU (and 1 thread) and 2 GB, so that two can run side by side; the
+    scene batches 2 CPUs. A copy of the profile rather than --set-resources, which would replace
+    the profile's whole set-resources block."""
+    prof = yaml.safe_load((REPO / "slurm" / "config.yaml").read_text())
+    for rule in GPU_RULES:
+        assert prof["set-resources"][rule]["gpu"] == 1, f"the profile no longer asks a GPU for {rule}"
+        prof["set-resources"][rule].update(cpus_per_task=1, mem_mb=2000)
+        prof["set-threads"][rule] = 1
+    for rule in BATCH_RULES:
+        prof["set-resources"][rule]["cpus_per_task"] = prof["set-threads"][rule] = 2
+    dest.mkdir()
+    (dest / "config.yaml").write_text(yaml.safe_dump(prof, sort_keys=False))
+    return dest
+
+
+def submitted_jobs(output: str) -> dict[str, list[str]]:
+    """SLURM job ids per rule (or group), from the SLURM executor's 'submitted' lines."""
+    jobs: dict[str, list[str]] = {}
+    for jobid, name in re.findall(r"submitted with SLURM jobid (\d+) \(log: \S*/slurm_logs/(?:rule|group)_(\w+)/",
+                                  output):
+        jobs.setdefault(name, []).append(jobid)
+    return jobs
+
+
+def test_whole_workflow_on_slurm_gpu_jobs_get_a_gpu_and_run_on_the_cpu(cluster, tmp_path):
+    cfg = write_config(tmp_path / "c.yaml", dict(copy.deepcopy(WHOLE), results=str(tmp_path / "results")))
+    profile = small_node_profile(tmp_path / "profile")
+    t0 = time.monotonic()
+    r = snakemake("--profile", str(profile), "--configfile", str(cfg), "--slurm-init-seconds-before-status-checks",
+                  "2", "--latency-wait", "10", workdir=tmp_path, env=cluster)
+    out = r.stdout + r.stderr
+    assert r.returncode == 0, out[-4000:]
+    print(f"whole workflow on SLURM: {time.monotonic() - t0:.0f} s")
+    jobs = submitted_jobs(out)
+    assert all(len(jobs.get(rule, [])) == 1 for rule in (*BATCH_RULES, "manifest_shard", *GPU_RULES, "report")), jobs
+    ids = [i for found in jobs.values() for i in found]
+    acct = subprocess.run(["sacct", "-X", "-n", "-P", "-j", ",".join(ids), "-o", "JobID,State,ReqTRES,AllocTRES"],
+                          env=cluster, capture_output=True, text=True, check=True).stdout
+    rows = {line.split("|")[0]: line.split("|")[1:] for line in acct.splitlines() if line.strip()}
+    print("\n".join(f"{rule} {i} {'|'.join(rows.get(i, []))}" for rule, found in jobs.items() for i in found))
+    assert set(rows) == set(ids), acct
+    for rule, found in jobs.items():
+        for i in found:
+            state, req, alloc = rows[i]
+            assert state == "COMPLETED", (rule, i, rows[i])
+            gpu = rule in GPU_RULES
+            assert ("gres/gpu=1" in req and "gres/gpu=1" in alloc) == gpu, (rule, i, rows[i])
+    # on the CPU, and their logs say why
+    res = tmp_path / "results"
+    for arch in WHOLE["train"]["architectures"]:
+        for log in (res / "models" / arch / "train.log", res / "eval" / arch / "evaluate.log",
+                    res / "bench" / f"{arch}.log"):
+            text = log.read_text()
+            assert re.search(r"WARNING .*device auto: SLURM allocated GPU\(s\) to this job \(SLURM_STEP_GPUS=\d.*"
+                             r"CUDA_VISIBLE_DEVICES=\d\) but CUDA sees none .*; running on the CPU", text), log
+        assert json.loads((res / "eval" / arch / "metrics.json").read_text())["datasets"]["train"]
+        bench = json.loads((res / "bench" / f"{arch}.json").read_text())
+        assert [b["device"] for b in bench["results"]] == ["cpu"]
+    assert "Inference speed" in (res / "report" / "report.html").read_text()
+
+
+def test_auto_device_warns_only_where_slurm_gave_a_gpu_cuda_cannot_see(monkeypatch, caplog):
+    import torch
+
+    from psdfactory.learn.runtime import pick_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for k in ("SLURM_JOB_GPUS", "SLURM_STEP_GPUS", "SLURM_GPUS_ON_NODE"):
+        monkeypatch.delenv(k, raising=False)
+    with caplog.at_level(logging.WARNING, logger="psdfactory"):
+        assert pick_device("auto").type == "cpu"
+        monkeypatch.setenv("SLURM_GPUS_ON_NODE", "0")
+        assert pick_device("auto").type == "cpu"
+        assert not caplog.records  # no GPU asked for: running on the CPU is what was meant
+        monkeypatch.setenv("SLURM_JOB_GPUS", "0")
+        monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0")
+        assert pick_device("auto").type == "cpu"
+    assert [r.levelname for r in caplog.records] == ["WARNING"]
+    assert "SLURM allocated GPU(s) to this job (SLURM_JOB_GPUS=0; CUDA_VISIBLE_DEVICES=0) but CUDA sees none" in \
+        caplog.records[0].getMessage()
