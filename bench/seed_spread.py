@@ -33,9 +33,9 @@ train.log / eval/evaluate.log, Snakemake's to <out>/snakemake.log.
     .venv/bin/python bench/seed_spread.py --seeds 5 --archs instances         # one model, 5 seeds
     .venv/bin/python bench/seed_spread.py --seed-list 42 7 11 --no-snakemake  # reuse results/ as it is
 
-On 2 CPU cores the default config with 3 seeds takes about an hour: ~8 min of scenes (Cycles
-re-render included, which needs .venv-blender: `make blender`) and ~12 min of training and
-evaluation per seed.
+The datasets cost what `make demo`'s scenes do (the Cycles re-render needs .venv-blender: `make
+blender`), and each seed what its training does (about 10 min on 2 idle AMD EPYC cores), plus the
+evaluations; on cores shared with other work, many times that.
 """
 
 from __future__ import annotations
@@ -73,13 +73,16 @@ class Progress:
         self.done: dict[str, list[float]] = {}
         self.next = 0
 
-    def eta(self, current_elapsed: float = 0.0) -> str:
+    def eta(self, current_elapsed: float = 0.0, current_total: float | None = None) -> str:
+        """`current_total`: the running job's own estimate of its length (from its epochs so far)."""
         left = 0.0
         unknown = 0
         all_done = [t for ts in self.done.values() for t in ts]
         for i, (kind, _) in enumerate(self.jobs[self.next:]):
             ts = self.done.get(kind)
-            if ts:
+            if i == 0 and current_total is not None:
+                left += max(0.0, current_total - current_elapsed)
+            elif ts:
                 est = sum(ts) / len(ts)
                 left += max(0.0, est - current_elapsed) if i == 0 else est
             elif all_done:
@@ -90,9 +93,9 @@ class Progress:
             return "ETA after the first run"
         return f"ETA {fmt_time(left)}" + (" (+ runs not yet timed)" if unknown else "")
 
-    def say(self, msg: str, current_elapsed: float = 0.0) -> None:
+    def say(self, msg: str, current_elapsed: float = 0.0, current_total: float | None = None) -> None:
         print(f"[{fmt_time(time.monotonic() - self.t0)}] [{self.next + 1}/{len(self.jobs)}] {msg} — "
-              f"{self.eta(current_elapsed)}", flush=True)
+              f"{self.eta(current_elapsed, current_total)}", flush=True)
 
     def finish(self, kind: str, seconds: float | None) -> None:
         """One run done (`seconds` None: kept from before, not timed now)."""
@@ -144,11 +147,14 @@ def run_watched(cmd: list[str], progress: Progress, label: str, history: Path | 
         time.sleep(2)
         if time.monotonic() >= next_line:
             next_line += 60
-            epoch = ""
+            epoch, total = "", None
+            elapsed = time.monotonic() - t0
             if history is not None and history.is_file():
                 n = max(0, len(history.read_text(encoding="utf-8").strip().splitlines()) - 1)
                 epoch = f", epoch {n}/{epochs}" if epochs else f", epoch {n}"
-            progress.say(f"{label}: running {fmt_time(time.monotonic() - t0)}{epoch}", time.monotonic() - t0)
+                if n and epochs:  # this run's own pace (early stopping may end it sooner)
+                    total = elapsed / n * epochs
+            progress.say(f"{label}: running {fmt_time(elapsed)}{epoch}", elapsed, total)
     err = proc.stderr.read() if proc.stderr else ""
     if proc.returncode:
         sys.exit(f"{label} failed (exit code {proc.returncode}):\n{err.strip()[-2000:]}\ncommand: {' '.join(cmd)}")
