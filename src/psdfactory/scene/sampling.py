@@ -129,15 +129,23 @@ def circumradii(vertices: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     return np.maximum.reduceat(r, offsets[:-1]) if len(offsets) > 1 else np.zeros(0)
 
 
-def sample_scene(p: SampleParams) -> tuple[dict, dict[str, np.ndarray]]:
-    """The scene spec (paper metadata + provenance) and its packed particle meshes."""
-    entropy = scene_entropy(p.seed, p.dataset, p.index)
-    rng = rng_for(entropy, "sample")
+def draw_sizes(p: SampleParams, rng: np.random.Generator | None = None) -> tuple[int, float, float, np.ndarray]:
+    """(count, μ, σ, sizes in mm) of a scene: the first draws of its ``sample`` stream (`rng`; by
+    default that stream from the start), so the sizes alone can be had without making a scene."""
+    if rng is None:
+        rng = rng_for(scene_entropy(p.seed, p.dataset, p.index), "sample")
     lo_n, hi_n = p.count
     n = int(rng.integers(lo_n, hi_n + 1))
     mean = float(rng.uniform(*p.size_mean))
     sigma = float(rng.uniform(*p.size_sigma))
-    sizes = truncnormal_sizes(rng, n, mean, sigma, *p.size_bounds)
+    return n, mean, sigma, truncnormal_sizes(rng, n, mean, sigma, *p.size_bounds)
+
+
+def sample_scene(p: SampleParams) -> tuple[dict, dict[str, np.ndarray]]:
+    """The scene spec (paper metadata + provenance) and its packed particle meshes."""
+    entropy = scene_entropy(p.seed, p.dataset, p.index)
+    rng = rng_for(entropy, "sample")
+    n, mean, sigma, sizes = draw_sizes(p, rng)
 
     shape_params = ShapeParams.for_family(p.shape, p.shape_params)
     particles = make_particles(p.shape, sizes, rng_for(entropy, "shape"), shape_params)
