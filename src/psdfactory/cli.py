@@ -248,6 +248,16 @@ def cmd_predict(a: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def cmd_calibrate(a: argparse.Namespace) -> None:
+    from .deploy.calibrate import calibrate, table_lines
+    from .learn.runtime import pick_device
+
+    pick_device(a.device)
+    block = calibrate(Path(a.model), Path(a.reference), a.images, Path(a.out), a.mm_per_px,
+                      size_definition=a.size_definition, device=a.device)
+    print("\n".join(table_lines(block)), flush=True)
+
+
 def cmd_export(a: argparse.Namespace) -> None:
     from .deploy.export import export
 
@@ -270,6 +280,7 @@ HELP_COLUMNS = 100  # the help is wrapped to the terminal, and never wider than 
 USER_COMMANDS = {
     "predict": "read d10/d50/d90 (mm) off photos with a trained model → table, CSV or JSON",
     "export": "ONNX and TorchScript copies of a model (int8 too), checked against PyTorch",
+    "calibrate": "correct a model against reference samples (sieved or lab-measured d10/d50/d90) → a calibrated model",
     "show": "contact sheet of a dataset's scenes: images, masks and labels side by side",
     "check-config": "validate a config file against the schema, without running anything",
 }
@@ -317,6 +328,12 @@ EXAMPLES = {
         "psdfactory export --model results/models/efficientnet_b0/model.pt --out-dir deploy/ \\",
         "    --int8 results                                 # + model.int8.onnx",
         "psdfactory predict --model deploy/model.int8.onnx photos/      # then: predict with the export",
+    ],
+    "calibrate": [
+        "psdfactory calibrate --model results/models/instances/model.pt --reference sieved.csv \\",
+        "    --mm-per-px 0.288 --out calibrated.pt photos/   # sieved.csv: image,d10_mm,d50_mm,d90_mm",
+        "psdfactory predict --model calibrated.pt --mm-per-px 0.288 new/   # then: corrected readings",
+        "psdfactory export --model calibrated.pt --out-dir deploy/      # the ONNX export applies it too",
     ],
     "show": [
         "psdfactory show                                    # results/train → contact_sheet.png",
@@ -492,6 +509,35 @@ def build_parser() -> argparse.ArgumentParser:
                    help="refuse the int8 model if its overall R² on the test split moves more than this "
                         "(default: the benchmark's accuracy budget, 0.005)")
     p.set_defaults(func=cmd_export)
+
+    p = user("calibrate",
+             "Each reference image is predicted with the model (as predict does), and a correction from the "
+             "model's reading to the reference is fitted per target (d10, d50, d90): affine (least squares) below "
+             "10 references, isotonic (monotone, extrapolated linearly) from 10 on; the corrected d-values are "
+             "sorted (d10 <= d50 <= d90). The table on stdout gives its leave-one-out error (each reference "
+             "corrected by the fit on the others) beside the uncalibrated error. --out gets the same model with "
+             "the calibration in its meta: predict and an export of it apply the correction, in the size "
+             "definition and weighting it was fitted in (docs/calibration.md).")
+    p.add_argument("--model", required=True, metavar="FILE",
+                   help="the model.pt to calibrate (results/models/<arch>/model.pt); a calibrated one is "
+                        "calibrated afresh on its uncalibrated readings")
+    p.add_argument("--reference", required=True, metavar="CSV",
+                   help="the reference samples: a CSV with columns image,d10_mm,d50_mm,d90_mm (at least 3 rows); "
+                        "image is matched to the IMAGEs by path, else by file name, else by file name without "
+                        "suffix, one-to-one")
+    p.add_argument("--mm-per-px", type=mm_per_px_arg, metavar="MM",
+                   help="scale of the images in mm per pixel (1e-4 to 1e3), as for predict; use the same scale "
+                        "when predicting with the calibrated model (default: the model's scale)")
+    p.add_argument("--size-definition", choices=SIZE_DEFINITIONS, metavar="NAME",
+                   help="what the references' d10/d50/d90 are of: " + ", ".join(SIZE_DEFINITIONS) + " (default: "
+                   "the definition the model was trained on); the calibrated model is corrected in it only")
+    p.add_argument("--device", default="cpu", metavar="DEVICE",
+                   help="where the model runs: cpu, auto (cuda when there is one), cuda, cuda:N or mps")
+    p.add_argument("--out", required=True, metavar="FILE",
+                   help="the calibrated model to write (.pt; not the model itself, the reference table or an image)")
+    p.add_argument("images", nargs="+", metavar="IMAGE",
+                   help="the reference samples' images: files and/or folders of them, subfolders included")
+    p.set_defaults(func=cmd_calibrate)
 
     p = user("show", "It reads the dataset's manifest (results/<dataset>/manifest): run the workflow first. "
              "The workflow makes one per dataset too (results/<dataset>/contact_sheet.png, rules/manifest.smk).")

@@ -18,6 +18,7 @@ from torch.nn import functional as F
 
 from .. import PsdError
 from ..io import read_photo, same_file, write_json
+from ..learn.calibration import apply_calibration, calibration_note
 from ..learn.data import to_input
 from ..learn.estimator import Estimator, reading_of
 from ..psd import TARGETS
@@ -235,6 +236,7 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
         if grains is not None:
             grains.write(path, image, size_hw, found.grains)
         d = est.in_definition(found, what["size_definition"], what["weighting"], str(path))
+        d = apply_calibration(meta, what, d)  # a calibrated model's correction (psdfactory calibrate)
         return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, **what, "error": ""}
     except PsdError as e:
         error = str(e)
@@ -274,6 +276,8 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
     for line in describe_model(meta, model_path, mm_per_px):
         logger.info(line)
     logger.info(f"d10/d50/d90 of the particles' {what['size_definition']} size, {what['weighting']}-weighted")
+    if (note := calibration_note(meta, what)) is not None:  # refuses a reading the calibration is not of
+        logger.info(note)
     return est, files, what
 
 

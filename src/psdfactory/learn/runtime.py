@@ -286,7 +286,9 @@ META_CHECKS = {  # what every model's meta must hold before anything is built or
 def meta_problems(meta: object) -> list[str]:
     """What is wrong with a model's metadata (model.pt's ``meta``, an export's meta.json): the
     keys predict and evaluate rely on, their types and sane ranges, and its estimator's own
-    (`Estimator.meta_problems`). Empty when it is fine."""
+    (`Estimator.meta_problems`), and a calibration block (`calibration.calibration_problems`).
+    Empty when it is fine."""
+    from .calibration import calibration_problems
     from .registry import estimator_class
 
     if not isinstance(meta, dict):
@@ -296,9 +298,17 @@ def meta_problems(meta: object) -> list[str]:
     if problems:
         return problems
     try:
-        return estimator_class(meta["arch"]).meta_problems(meta)
+        est_cls = estimator_class(meta["arch"])
+        problems = est_cls.meta_problems(meta)
     except PsdError as e:
         return [str(e)]
+    if "calibration" in meta:  # any estimator's model may carry one (`psdfactory calibrate`)
+        problems = problems + calibration_problems(meta["calibration"])
+        definition = meta["calibration"]["size_definition"] if not problems else None
+        if definition is not None and definition not in est_cls.definitions(meta):
+            problems.append(f"calibration.size_definition {definition} is not one this {meta['arch']} model reads "
+                            f"({', '.join(est_cls.definitions(meta))})")
+    return problems
 
 
 def load_model(path: Path, device: torch.device | str = "cpu") -> tuple[nn.Module, dict]:
