@@ -21,6 +21,7 @@ from psdfactory.learn.train import TrainParams
 from psdfactory.scene.labels import LabelParams
 from psdfactory.scene.physics import PhysicsParams, QualityBounds
 from psdfactory.scene.render.cycles import CyclesParams
+from psdfactory.scene.render.distractors import DistractorParams
 from psdfactory.scene.render.look import RenderParams
 from psdfactory.scene.sampling import SampleParams
 from psdfactory.scene.shapes import ShapeParams
@@ -91,6 +92,7 @@ CASES = [
     (QualityBounds, ("physics", "quality"), (), {}, {}),
     (RenderParams, ("render",), (), {}, {}),
     (CyclesParams, ("render", "cycles"), (), {}, {}),
+    (DistractorParams, ("render", "distractors"), (), {}, {}),
     (LabelParams, ("labels",), (), {}, {}),
     (TrainParams, ("train",), (),
      {"arch": "one of train.architectures", "seed": "the top-level seed",
@@ -107,6 +109,7 @@ CASES = [
 # the type of a field that holds a whole section (shape_params: the overrides that
 # ShapeParams.for_family takes, a plain mapping)
 NESTED = {(PhysicsParams, "quality"): QualityBounds, (RenderParams, "cycles"): CyclesParams,
+          (RenderParams, "distractors"): DistractorParams,
           (SampleParams, "shape_params"): dict}
 
 

@@ -22,6 +22,7 @@ from ...config import MAX_PARTICLES_16BIT
 from ...seeding import rng_for
 from ..geometry import Geometry
 from .cycles import render_cycles
+from .distractors import add_distractors
 from .look import RenderParams, apply_sensor, draw_look, mm_per_px
 from .tiny import render_tiny
 
@@ -42,6 +43,7 @@ def render_scene(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.n
     look = draw_look(rng, p, n, rng_for(entropy, "look"))  # the same look (colours, light, view) for every backend
     px_mm = mm_per_px(float(spec["table_size"]), p.resolution, look.view_fraction)
     rgb, mask, extra = BACKENDS[p.backend](spec, geometry, pos_mm, quats, p, look, rng)
+    rgb, mask, drawn = add_distractors(rgb, mask, px_mm, p.distractors, rng_for(entropy, "distractors"))
     image = apply_sensor(rgb, look, p, rng)
     look_meta = {k: v for k, v in asdict(look).items() if k != "particle_rgb"}
     meta = {
@@ -54,5 +56,6 @@ def render_scene(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.n
         "camera_height_mm": p.camera_height_mm,
         "image_origin": "centred on the table; row 0 = +y edge of the view, column 0 = -x edge",
         "look": look_meta,
+        "distractors": drawn,
     }
     return image, mask, meta

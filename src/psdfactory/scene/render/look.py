@@ -19,6 +19,7 @@ from scipy import ndimage
 from ... import PsdError
 from ...config import config_fields
 from .cycles import CyclesParams, Range
+from .distractors import DistractorParams
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,7 @@ class RenderParams:
     shot_noise: Range
     jpeg_fraction: float
     jpeg_quality: tuple[int, int]
+    distractors: DistractorParams  # a scale card or ruler laid on the bed (distractors.py)
     # the Cycles backend's settings: None where another backend renders (config.render_params
     # leaves them out of that slice, so that editing them reruns nothing)
     cycles: CyclesParams | None
@@ -68,7 +70,9 @@ class RenderParams:
     def from_dict(cls, d: dict) -> RenderParams:
         kw = config_fields(cls, {"cycles": None, **d}, "render")
         for k, v in kw.items():
-            if k == "cycles":
+            if k == "distractors":
+                kw[k] = DistractorParams.from_dict(v)
+            elif k == "cycles":
                 if v is not None:
                     kw[k] = CyclesParams.from_dict(v)
                 elif kw["backend"] == "cycles":
