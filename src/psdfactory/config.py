@@ -493,6 +493,8 @@ def render_params(config: dict, dataset: str | None = None) -> dict:
     out = copy.deepcopy(dataset_render(config, dataset) if dataset else config["render"])
     if out["backend"] != "cycles":
         out.pop("cycles", None)
+    if not out.get("distractors", {}).get("probability", 0):  # off: its settings rerun nothing
+        out.pop("distractors", None)
     return out
 
 

@@ -43,7 +43,9 @@ def render_scene(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.n
     look = draw_look(rng, p, n, rng_for(entropy, "look"))  # the same look (colours, light, view) for every backend
     px_mm = mm_per_px(float(spec["table_size"]), p.resolution, look.view_fraction)
     rgb, mask, extra = BACKENDS[p.backend](spec, geometry, pos_mm, quats, p, look, rng)
-    rgb, mask, drawn = add_distractors(rgb, mask, px_mm, p.distractors, rng_for(entropy, "distractors"))
+    drawn = []
+    if p.distractors is not None:
+        rgb, mask, drawn = add_distractors(rgb, mask, px_mm, p.distractors, rng_for(entropy, "distractors"))
     image = apply_sensor(rgb, look, p, rng)
     look_meta = {k: v for k, v in asdict(look).items() if k != "particle_rgb"}
     meta = {

@@ -61,17 +61,17 @@ class RenderParams:
     shot_noise: Range
     jpeg_fraction: float
     jpeg_quality: tuple[int, int]
-    distractors: DistractorParams  # a scale card or ruler laid on the bed (distractors.py)
+    distractors: DistractorParams | None  # a scale card or ruler laid on the bed (distractors.py); None: off
     # the Cycles backend's settings: None where another backend renders (config.render_params
     # leaves them out of that slice, so that editing them reruns nothing)
     cycles: CyclesParams | None
 
     @classmethod
     def from_dict(cls, d: dict) -> RenderParams:
-        kw = config_fields(cls, {"cycles": None, **d}, "render")
+        kw = config_fields(cls, {"cycles": None, "distractors": None, **d}, "render")
         for k, v in kw.items():
             if k == "distractors":
-                kw[k] = DistractorParams.from_dict(v)
+                kw[k] = None if v is None else DistractorParams.from_dict(v)
             elif k == "cycles":
                 if v is not None:
                     kw[k] = CyclesParams.from_dict(v)
