@@ -445,3 +445,14 @@ def test_overlay(shapes_mask):
     assert grey.shape == image.shape
     with pytest.raises(PsdError):
         draw_overlay(image, shapes_mask, sieve_size(m)[:2])
+
+
+def test_instance_outlines_are_scikit_images_inner_boundaries():
+    from skimage.segmentation import find_boundaries
+
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        m = np.kron(rng.integers(0, 6, (rng.integers(1, 20), rng.integers(1, 20))), np.ones((2, 2), int))
+        m = m[: rng.integers(1, 40), : rng.integers(1, 40)]
+        want = find_boundaries(m, connectivity=1, mode="inner", background=0) & (m > 0)
+        np.testing.assert_array_equal(instance_outlines(m), want)
