@@ -11,7 +11,7 @@ default config, plus the `train_cycles` re-render):
 
 Each step trains from scratch with the config's training settings plus the step's overrides
 (seeded: the same step gives the same figures on the same machine). Steps join with '+'
-(`onecycle-3x+size-cells`). Two arms side by side on 2 cores, one thread each, as the README's
+(`onecycle-3x+size-cells`). Two arms side by side on 2 cores, one thread each, as docs/experiments.md's
 table was measured (a config with an `unseen` dataset and its Cycles re-render scores those too):
 
     for s in baseline onecycle-3x; do .venv/bin/python bench/recipe_ablation.py --results results \

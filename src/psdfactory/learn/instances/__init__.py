@@ -32,7 +32,7 @@ it, then read the PSD off the measured particles.
   at the image's mm per pixel (sieve size per ``train.instances.sieve_method``: by default the
   footprint's min Feret diameter; ``size_map``, the size map's median over the instance, reads
   partly hidden grains whole but misreads the fines and transfers worse to Cycles renders —
-  measured in the README) → raw number-weighted d10/d50/d90 of the instances not touching
+  measured in docs/experiments.md) → raw number-weighted d10/d50/d90 of the instances not touching
   the image edge (`psd_from_instances`) and the calibrated d10/d50/d90 (the read-out; sorted so
   that d10 ≤ d50 ≤ d90).
 
