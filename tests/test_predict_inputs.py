@@ -212,7 +212,7 @@ def test_predict_on_a_hostile_folder_names_each_bad_file_and_predicts_the_rest(f
 
     out = tmp_path / "psd.csv"
     t0 = time.perf_counter()
-    assert main(["predict", "--model", str(model_file), "--out", str(out), str(folder)]) == 1
+    assert main(["predict", "--model", str(model_file), "--mm-per-px", "0.5", "--out", str(out), str(folder)]) == 1
     assert time.perf_counter() - t0 < 20
     rows = {Path(r["image"]).name: r for r in csv.DictReader(open(out))}
     assert set(rows) == {p.name for p in folder.iterdir()}
@@ -262,7 +262,7 @@ def stub_predictor(monkeypatch, calls: list):
     monkeypatch.setattr(predict, "load_predictor", counting)
 
 
-def many_images(d: Path, n: int, size: int = 16) -> Path:
+def many_images(d: Path, n: int, size: int = META["image_resolution"]) -> Path:
     d.mkdir()
     rng = np.random.default_rng(0)
     for i in range(n):
@@ -326,7 +326,8 @@ def test_memory_stays_flat_over_a_folder(tmp_path, monkeypatch):
     imgs = many_images(tmp_path / "imgs", 300, size=96)
     stub_predictor(monkeypatch, [])
     tracemalloc.start()
-    n, failed = stream_predictions(Path("stub.pt"), [str(imgs)], tmp_path / "p.csv", progress_stream=io.StringIO())
+    n, failed = stream_predictions(Path("stub.pt"), [str(imgs)], tmp_path / "p.csv", progress_stream=io.StringIO(),
+                                   mm_per_px=META["mm_per_px"])
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     assert (n, failed) == (300, 0)

@@ -11,7 +11,8 @@ import traceback
 from pathlib import Path
 
 from . import PsdError, __version__
-from .psd import SIZE_DEFINITIONS
+from .config import PREDICT_TILE_PX
+from .psd import GRAIN_WEIGHTINGS, SIZE_DEFINITIONS
 
 logger = logging.getLogger(__name__)
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -235,7 +236,7 @@ def cmd_predict(a: argparse.Namespace) -> int:
                                        emit=emit, overlay_dir=Path(a.overlay) if a.overlay else None,
                                        masks_dir=Path(a.masks) if a.masks else None,
                                        particles_out=Path(a.particles) if a.particles else None,
-                                       size_definition=a.size_definition)
+                                       size_definition=a.size_definition, weighting=a.weighting, tile=a.tile)
     except KeyboardInterrupt:
         if out is not None:
             logger.error(f"psdfactory predict: interrupted; the rows done so far are in {partial_path(out)} "
@@ -483,13 +484,25 @@ def build_parser() -> argparse.ArgumentParser:
                    "and sizes (mm) drawn on as DIR/<image stem>.png")
     p.add_argument("--masks", metavar="DIR", help="instance models: write each image's instance mask as "
                    "DIR/<image stem>.png (16-bit, 0 = background, k = one particle)")
-    p.add_argument("--particles", metavar="FILE", help="instance models: write every measured particle to this CSV "
-                   "(image, id, area_mm2, sieve_size_mm, volume_mm3, touches_edge)")
+    p.add_argument("--particles", metavar="FILE", help="instance models: write every grain found to this CSV, "
+                   "measured in mm at the photo's scale (image, id, centroid_row_px, centroid_col_px, area_mm2, "
+                   "ecd_mm, ellipse_major_mm, ellipse_minor_mm, feret_min_mm, feret_max_mm, sieve_size_mm, "
+                   "volume_mm3, touches_edge, mask_mm_per_px; docs/photos.md)")
     p.add_argument("--size-definition", choices=SIZE_DEFINITIONS, metavar="NAME",
                    help="what d10/d50/d90 are of: " + ", ".join(SIZE_DEFINITIONS) + " (default: the definition "
                    "the model was trained on, in the CSV's size_definition column). An instance model also "
                    "estimates the other solid definitions (sieve, b-axis, c-axis, esd) and measures feret-min, "
                    "feret-max and ecd on the whole grains it finds; a CNN reads only its own")
+    p.add_argument("--weighting", choices=GRAIN_WEIGHTINGS, metavar="NAME",
+                   help="what the percentiles count: " + ", ".join(GRAIN_WEIGHTINGS) + " (grains, their footprint "
+                   "area, their volume; default: the model's training weighting, in the CSV's weighting column). "
+                   "An instance model weights feret-min, feret-max and ecd any way (area-weighted grains of a "
+                   "photo compare with a Wolman grid count, volume-weighted with a sieve analysis); its other "
+                   "definitions and a CNN give only the weighting they were trained on")
+    p.add_argument("--tile", type=positive_int, default=PREDICT_TILE_PX, metavar="PX",
+                   help="instance models: run an image larger than this at the network's scale in overlapping "
+                   "tiles of this side (px, a multiple of 32), stitched into one result: memory for the network "
+                   f"stays that of one tile (default: {PREDICT_TILE_PX})")
     p.add_argument("images", nargs="+", metavar="IMAGE",
                    help="image files (.png, .jpg, .tif, .bmp, .webp) and/or folders of them, subfolders included")
     p.set_defaults(func=cmd_predict)

@@ -24,6 +24,9 @@ MAX_MESH_FACES = 5000  # triangles of a user's particle mesh (every particle of 
 DESIGN_INPUT_SIZE = 224  # network input px of the torchvision models
 # where the design size differs; for the instance estimator: its training crops (it runs on whole images)
 DEFAULT_INPUT_SIZE = {"inception_v3": 299, "instances": 128}
+# psdfactory predict --tile: the side (px at the network's scale) of the tiles an image too large for one pass is
+# run in by an estimator whose outputs are maps (~1.2 GB for the instance network on a CPU)
+PREDICT_TILE_PX = 1024
 
 
 def default_input_size(arch: str) -> int:

@@ -30,6 +30,10 @@ SOLID_DEFINITIONS = ("sieve", "b-axis", "c-axis", "esd")
 FOOTPRINT_DEFINITIONS = ("feret-min", "feret-max", "ecd")
 SIZE_DEFINITIONS = SOLID_DEFINITIONS + FOOTPRINT_DEFINITIONS
 WEIGHTINGS = ("number", "volume")  # what a percentile counts: particles, or their volume (mass)
+# what the percentiles of grains measured in a photo may count (predict --weighting): also their footprint
+# area, the weight that turns a photo's grains into a grid (Wolman) count, whose points land on a grain
+# with a chance proportional to its exposed area
+GRAIN_WEIGHTINGS = ("number", "area", "volume")
 
 
 def size_column(definition: str) -> str:

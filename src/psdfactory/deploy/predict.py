@@ -6,6 +6,7 @@ import csv
 import datetime
 import json
 import logging
+import math
 import os
 import sys
 import time
@@ -17,6 +18,7 @@ import torch
 from torch.nn import functional as F
 
 from .. import PsdError
+from ..config import PREDICT_TILE_PX
 from ..io import read_photo, same_file, write_json
 from ..learn.calibration import apply_calibration, calibration_note
 from ..learn.data import to_input
@@ -133,31 +135,128 @@ def network_scale(meta: dict) -> float:
     return meta["mm_per_px"] * meta["image_resolution"] / meta["input_size"]
 
 
-MAX_NETWORK_PIXELS = 4096 * 4096  # the largest input the network is run on (memory grows with it)
+MAX_NETWORK_PIXELS = 4096 * 4096  # the largest input a network is run on in one pass (memory grows with it)
+# An estimator whose outputs are maps (Estimator.tile_margin_px) runs an image larger than a tile at the network's
+# scale tile by tile; its stitched maps, watershed and measurement still grow with the image: ~150 B per network
+# pixel above ~0.9 GB (bench/photo_speed.py: 7.1 GB peak for 48 MP), so up to 8192 x 8192 px there (~11 GB).
+DEFAULT_TILE_PX = PREDICT_TILE_PX  # a tile's side at the network's scale (predict --tile)
+MAX_TILED_PIXELS = 8192 * 8192
 
 
 def target_size(h: int, w: int, meta: dict, mm_per_px: float | None) -> tuple[int, int]:
     """(height, width) an image of h x w px is resized to before the network: the model's input
-    size (same field of view as training assumed), or with `mm_per_px` the model's scale."""
+    size (an image of the training images' size, `check_field_of_view`), or with `mm_per_px` the
+    model's scale, the aspect ratio kept."""
     if mm_per_px is None:
         return meta["input_size"], meta["input_size"]
     scale = mm_per_px / network_scale(meta)
     return max(32, round(h * scale)), max(32, round(w * scale))
 
 
-def prepare(image: np.ndarray, meta: dict, mm_per_px: float | None,
-            size_hw: tuple[int, int] | None = None) -> torch.Tensor:
-    """uint8 image → uint8 1x3xHxW tensor at the scale the network was trained on. `size_hw`: the
-    image's full size when `image` was decoded reduced (read_photo), so the scale stays exact."""
-    size = target_size(*(size_hw or image.shape[:2]), meta, mm_per_px)
-    if size[0] * size[1] > MAX_NETWORK_PIXELS:
-        raise PsdError(f"at the model's scale this image is {size[1]} x {size[0]} px, more than the "
-                       f"{MAX_NETWORK_PIXELS:,} px the network is run on: crop it, or check --mm-per-px")
+def check_field_of_view(path: Path | str, size_hw: tuple[int, int], meta: dict) -> None:
+    """Without --mm-per-px an image's scale is known only when it was made as the training images
+    were: of their size (image_resolution px square, at the model's mm per px). Any other size is
+    refused, saying how to find the scale, rather than taken to cover their field of view."""
+    res, mm = meta["image_resolution"], meta["mm_per_px"]
+    h, w = size_hw
+    if (h, w) != (res, res):
+        raise PsdError(f"{path}: {w} x {h} px is not the model's field of view ({res} x {res} px at {mm:.4g} mm/px, "
+                       f"{res * mm:.0f} mm square), so its scale is unknown: give it with --mm-per-px (a ruler or "
+                       "scale card lying in the shot, on the grains' level: mm per px = its length in mm / its "
+                       "length in px)")
+
+
+def network_mm_per_px(size_hw: tuple[int, int], net_hw: tuple[int, int], meta: dict,
+                      mm_per_px: float | None) -> float:
+    """mm per pixel of an image of `size_hw` px resized to `net_hw` for the network: the model's
+    scale up to the rounding of the size (exact here)."""
     if mm_per_px is None:
-        return to_input(image, meta["input_size"])[None]  # same field of view as training assumed
-    t = torch.from_numpy(np.array(image, dtype=np.uint8, copy=True)).permute(2, 0, 1)[None].float()
-    t = F.interpolate(t, size=size, mode="bilinear", antialias=True, align_corners=False)
+        return network_scale(meta)
+    return mm_per_px * math.sqrt(size_hw[0] * size_hw[1] / (net_hw[0] * net_hw[1]))
+
+
+def prepare(image: np.ndarray, meta: dict, mm_per_px: float | None,
+            size_hw: tuple[int, int] | None = None, max_pixels: int = MAX_NETWORK_PIXELS) -> torch.Tensor:
+    """uint8 image → uint8 1x3xHxW tensor at the scale the network was trained on. `size_hw`: the
+    image's full size when `image` was decoded reduced (read_photo), so the scale stays exact.
+    `max_pixels`: the most the network takes (more for an estimator that tiles)."""
+    size = target_size(*(size_hw or image.shape[:2]), meta, mm_per_px)
+    if size[0] * size[1] > max_pixels:
+        raise PsdError(f"at the model's scale this image is {size[1]} x {size[0]} px, more than the "
+                       f"{max_pixels:,} px the network is run on: crop it, or check --mm-per-px")
+    if mm_per_px is None:
+        return to_input(image, meta["input_size"])[None]  # an image made as the training images were
+    t = torch.from_numpy(np.array(image, dtype=np.uint8, copy=True)).permute(2, 0, 1)[None]
+    if tuple(image.shape[:2]) == size:
+        return t  # already at the model's scale
+    t = F.interpolate(t.float(), size=size, mode="bilinear", antialias=True, align_corners=False)
     return t.round().clamp(0, 255).to(torch.uint8)
+
+
+# ---- large images: tiles at the network's scale ------------------------------------------------
+
+
+def tile_spans(n: int, tile: int, margin: int) -> list[tuple[int, int, int, int]]:
+    """(core start, core end, tile start, tile end) along an axis of `n` px cut into tiles of at
+    most `tile` px: the cores (each tile's own part of the stitched maps) lie side by side and
+    cover the axis; each tile reaches `margin` px beyond its core on both sides, except at the
+    image's own edges. With `tile` and `margin` multiples of 32 every tile starts on the
+    network's stride grid, as in one pass; the last one ends at the image's edge."""
+    if n <= tile:
+        return [(0, n, 0, n)]
+    out = []
+    start = 0
+    while True:
+        t0 = max(0, start - margin)
+        if n - t0 <= tile:
+            out.append((start, n, t0, n))
+            return out
+        end = t0 + tile - margin
+        out.append((start, end, t0, end + margin))
+        start = end
+
+
+def check_tile(tile: int, margin: int) -> None:
+    """A tile must hold its two margins and a core of 32 px, and sit on the stride grid."""
+    if tile % 32 or tile < 2 * margin + 32:
+        raise PsdError(f"--tile {tile}: give a multiple of 32 of at least {2 * margin + 32} px (two margins of "
+                       f"{margin} px, what this model's maps see around a pixel, and a core of 32 px)")
+
+
+def tiled_outputs(est: Estimator, x: torch.Tensor, tile: int, where: str = "") -> np.ndarray:
+    """The estimator's output maps of uint8 1×3×H×W `x`, computed tile by tile (`tile_spans`,
+    margin `est.tile_margin_px`) and stitched from each tile's core: what one pass gives, since
+    a pixel's maps see only its margin, in the memory of one tile for the network. Progress
+    lines (tile i/N) go to the log."""
+    h, w = x.shape[-2:]
+    margin = est.tile_margin_px
+    rows, cols = tile_spans(h, tile, margin), tile_spans(w, tile, margin)
+    n, maps = len(rows) * len(cols), None
+    shown = time.monotonic()
+    for i, ((r0, r1, a0, a1), (c0, c1, b0, b1)) in enumerate(((r, c) for r in rows for c in cols), start=1):
+        out = est.outputs(x[:, :, a0:a1, b0:b1])
+        if out.ndim != 4 or out.shape[-2:] != (a1 - a0, b1 - b0):
+            raise PsdError(f"{est.arch}: its outputs {out.shape} are not maps of the input's size, as tiling needs")
+        if maps is None:
+            maps = np.empty((x.shape[0], out.shape[1], h, w), dtype=np.float32)
+        maps[:, :, r0:r1, c0:c1] = out[:, :, r0 - a0:r1 - a0, c0 - b0:c1 - b0]
+        if i == 1 or i == n or time.monotonic() - shown >= 5.0:
+            shown = time.monotonic()
+            logger.info(f"{where}: tile {i}/{n} ({w} x {h} px at the network's scale, tiles of {tile} px)")
+    return maps
+
+
+def predict_image(est: Estimator, x: torch.Tensor, mm_per_px: float, tile: int | None = DEFAULT_TILE_PX,
+                  where: str = ""):
+    """The estimator's reading of one uint8 1×3×H×W image at the network's scale: in one pass,
+    or, for an estimator whose outputs are maps (`tile_margin_px`) and an image larger than
+    `tile` px on a side, its maps computed tile by tile, stitched, and read once (the watershed
+    and the measurement run on the whole image: no grain is cut at a tile's edge or found twice)."""
+    h, w = x.shape[-2:]
+    if est.tile_margin_px is None or tile is None or (h <= tile and w <= tile):
+        return est.predict(x, mm_per_px)[0]
+    check_tile(tile, est.tile_margin_px)
+    return est.read(tiled_outputs(est, x, tile, where), [mm_per_px])[0]
 
 
 def load_predictor(model_path: Path, device: str = "cpu") -> Estimator:
@@ -204,35 +303,52 @@ def load_predictor(model_path: Path, device: str = "cpu") -> Estimator:
 COLUMNS = ["image", *TARGETS, "size_definition", "weighting", "error"]
 
 
-def reading(meta: dict, requested: str | None) -> dict:
+def reading(meta: dict, requested: str | None, weighting: str | None = None) -> dict:
     """What predict's d-values will be of: {"size_definition", "weighting"}. A model reads the
-    definition it was trained on, and what else its estimator can (`Estimator.definitions`: an
-    instance model also estimates the other solid definitions it has a read-out for, and measures
-    the footprint ones on the grains it finds). Anything else is refused, naming what it can read."""
+    definition and weighting it was trained on, and what else its estimator can
+    (`Estimator.definitions`, `Estimator.weightings`: an instance model also estimates the other
+    solid definitions it has a read-out for, and measures the footprint ones on the grains it
+    finds, weighted by number, area or volume). Anything else is refused, naming what it can read."""
     from ..learn.registry import estimator_class
 
-    return reading_of(estimator_class(meta["arch"]), meta, requested)
+    return reading_of(estimator_class(meta["arch"]), meta, requested, weighting)
 
 
-def describe_model(meta: dict, model_path: Path, mm_per_px: float | None) -> list[str]:
+def describe_model(meta: dict, model_path: Path, mm_per_px: float | None, margin: int | None = None,
+                   tile: int | None = None) -> list[str]:
     lines = [f"model {meta['arch']} ({model_path}): expects images at {meta['mm_per_px']:.4f} mm/px "
              f"({meta['image_resolution']} px over {meta['mm_per_px'] * meta['image_resolution']:.0f} mm); "
              f"network input {meta['input_size']} px = {network_scale(meta):.4f} mm/px"]
     if mm_per_px is None:
-        lines.append("no --mm-per-px given: each image is taken to cover the same field of view as the training images")
+        lines.append(f"no --mm-per-px given: only images of the training images' size ({meta['image_resolution']} px "
+                     "square) are taken, at their scale; give --mm-per-px for any other")
+    if margin is not None and tile is not None:
+        lines.append(f"images larger than {tile} px at {network_scale(meta):.4f} mm/px are run in tiles of {tile} px "
+                     f"overlapping by {2 * margin} px, their maps stitched and post-processed as one")
     return lines
 
 
 def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: GrainOutputs | None = None,
-                what: dict | None = None) -> dict:
+                what: dict | None = None, tile: int | None = DEFAULT_TILE_PX) -> dict:
     """One image → its row; a bad image gives a row whose `error` names the file and the reason.
-    With `grains` (an estimator that finds grains), its overlay, mask and particle rows are
-    written. `what`: the reading (``reading``)."""
+    Without `mm_per_px` only an image of the training images' size is taken (at their scale);
+    any other is refused before it is decoded. An image larger than `tile` px at the network's
+    scale is run tile by tile (`predict_image`). With `grains` (an estimator that finds grains),
+    its overlay, mask and particle rows are written. `what`: the reading (``reading``)."""
     meta = est.meta
     what = what or reading(meta, None)
+
+    def network_size(h: int, w: int) -> tuple[int, int]:
+        if mm_per_px is None:
+            check_field_of_view(path, (h, w), meta)
+        return target_size(h, w, meta, mm_per_px)
+
     try:
-        image, size_hw = read_photo(path, need=lambda h, w: target_size(h, w, meta, mm_per_px))
-        found = est.predict(prepare(image, meta, mm_per_px, size_hw), network_scale(meta))[0]
+        image, size_hw = read_photo(path, need=network_size)
+        tiles = est.tile_margin_px is not None and tile is not None
+        x = prepare(image, meta, mm_per_px, size_hw, MAX_TILED_PIXELS if tiles else MAX_NETWORK_PIXELS)
+        found = predict_image(est, x, network_mm_per_px(size_hw, x.shape[-2:], meta, mm_per_px), tile, str(path))
+        del x
         if grains is not None:
             grains.write(path, image, size_hw, found.grains)
         d = est.in_definition(found, what["size_definition"], what["weighting"], str(path))
@@ -249,7 +365,7 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
 
 def predict_rows(est: Estimator, files: list[Path], mm_per_px: float | None = None,
                  done: dict[str, dict] | None = None, grains: GrainOutputs | None = None,
-                 what: dict | None = None) -> Iterator[tuple[dict, bool]]:
+                 what: dict | None = None, tile: int | None = DEFAULT_TILE_PX) -> Iterator[tuple[dict, bool]]:
     """(row, predicted now) per file, in order, one image in memory at a time; the rows of
     `done` (keyed by image_key; of the same reading) are given back as they are, not predicted again."""
     done = done or {}
@@ -257,23 +373,26 @@ def predict_rows(est: Estimator, files: list[Path], mm_per_px: float | None = No
         grains.name_outputs(files)
     for f in files:
         old = done.get(image_key(f))
-        yield ({**old, "image": str(f)}, False) if old else (predict_one(est, f, mm_per_px, grains, what), True)
+        yield ({**old, "image": str(f)}, False) if old else (predict_one(est, f, mm_per_px, grains, what, tile), True)
 
 
 def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, device: str, outputs: dict | None = None,
-                size_definition: str | None = None):
+                size_definition: str | None = None, weighting: str | None = None,
+                tile: int | None = DEFAULT_TILE_PX):
     """The model (its runner and meta, described in the log), the image files to predict and what
     the d-values will be of (``reading``). `outputs`: an instance model's --overlay / --masks /
-    --particles (refused for the others)."""
+    --particles (refused for the others); `tile`: checked against the model's margin."""
     est = load_predictor(model_path, device)
     meta = est.meta
     if not est.finds_grains and any((outputs or {}).values()):
         raise PsdError(f"--overlay, --masks and --particles need a model that finds grains (e.g. the instance "
                        f"estimator, arch 'instances'); {meta['arch']} reads d10/d50/d90 straight off the image and "
                        "measures no particle")
-    what = reading(meta, size_definition)
+    what = reading(meta, size_definition, weighting)
+    if est.tile_margin_px is not None and tile is not None:
+        check_tile(tile, est.tile_margin_px)
     files = image_files(inputs)
-    for line in describe_model(meta, model_path, mm_per_px):
+    for line in describe_model(meta, model_path, mm_per_px, est.tile_margin_px, tile):
         logger.info(line)
     logger.info(f"d10/d50/d90 of the particles' {what['size_definition']} size, {what['weighting']}-weighted")
     if (note := calibration_note(meta, what)) is not None:  # refuses a reading the calibration is not of
@@ -283,13 +402,14 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
 
 def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None, device: str = "cpu",
                   overlay_dir: Path | None = None, masks_dir: Path | None = None,
-                  particles_out: Path | None = None, size_definition: str | None = None) -> list[dict]:
+                  particles_out: Path | None = None, size_definition: str | None = None,
+                  weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX) -> list[dict]:
     """One row per image. An instance model can also write each image's overlay and instance
     mask and a table of every measured particle (`GrainOutputs`)."""
     outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
-    est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition)
+    est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition, weighting, tile)
     grains = GrainOutputs(est.meta, **outputs) if est.finds_grains else None
-    rows = [row for row, _ in predict_rows(est, files, mm_per_px, grains=grains, what=what)]
+    rows = [row for row, _ in predict_rows(est, files, mm_per_px, grains=grains, what=what, tile=tile)]
     if grains is not None:
         grains.finish()
     return rows
@@ -458,7 +578,8 @@ class Progress:
 def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = None, mm_per_px: float | None = None,
                        device: str = "cpu", resume: bool = False, emit=None, progress_stream=None,
                        overlay_dir: Path | None = None, masks_dir: Path | None = None,
-                       particles_out: Path | None = None, size_definition: str | None = None) -> tuple[int, int]:
+                       particles_out: Path | None = None, size_definition: str | None = None,
+                       weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX) -> tuple[int, int]:
     """`psdfactory predict`: each image read, predicted and written (to `emit` and to `out`'s
     partial file) before the next is read, so memory stays flat and an interrupted run keeps
     what it did; `out` appears only when every image is done. → (images, failed). An instance
@@ -467,17 +588,22 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
     lock = OutLock(out) if out is not None else None
     try:
         return _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_stream, outputs,
-                       size_definition)
+                       size_definition, weighting, tile)
     finally:
         if lock is not None:
             lock.release()
 
 
 def _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_stream, outputs,
-            size_definition) -> tuple[int, int]:
-    est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition)
+            size_definition, weighting, tile) -> tuple[int, int]:
+    est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition, weighting, tile)
     done = done_rows(out) if (resume and out is not None) else {}
     done = {k: r for k, r in done.items() if all(r.get(c) == what[c] for c in what)}  # rows of another reading: again
+    particles = outputs.get("particles_out")
+    if done and particles is not None and not particle_table_current(Path(particles)):
+        logger.info(f"--resume: {particles} is missing or has other columns (an older psdfactory's): every image is "
+                    "predicted again")
+        done = {}
     grains = GrainOutputs(est.meta, **outputs, keep=done) if est.finds_grains else None
     if resume and out is None:
         logger.warning("--resume needs --out: nothing to resume from")
@@ -488,7 +614,7 @@ def _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_s
     progress = Progress(len(files), progress_stream, enabled=logger.isEnabledFor(logging.INFO))  # not with -q
     failed = 0
     try:
-        for row, predicted in predict_rows(est, files, mm_per_px, done, grains, what):
+        for row, predicted in predict_rows(est, files, mm_per_px, done, grains, what, tile):
             failed += bool(row["error"])
             if writer is not None:
                 writer.write(row)
@@ -507,7 +633,52 @@ def _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_s
 
 # ---- the files of a model that finds grains -------------------------------------------------
 
-PARTICLE_COLUMNS = ["image", "id", "area_mm2", "sieve_size_mm", "volume_mm3", "touches_edge"]
+# The particle table (--particles): one row per grain found, lengths in mm, areas in mm², volumes in mm³, positions
+# in px of the photo (upright, full size), each grain measured on the mask as the network found it (at
+# mask_mm_per_px: the network's scale) and converted with that scale. docs/photos.md says what each column is
+# in other tools' tables.
+PARTICLE_COLUMNS = ["image", "id", "centroid_row_px", "centroid_col_px", "area_mm2", "ecd_mm", "ellipse_major_mm",
+                    "ellipse_minor_mm", "feret_min_mm", "feret_max_mm", "sieve_size_mm", "volume_mm3", "touches_edge",
+                    "mask_mm_per_px"]
+
+
+def particle_rows(path: Path | str, res, size_hw: tuple[int, int]) -> list[dict]:
+    """The particle table's rows of one image from what the estimator found in it (`res`, as
+    `learn.instances.estimator.InstanceResult`): every grain of its mask, measured at the
+    network's scale (`res.measurements`), its centroid given in the pixels of the photo of
+    `size_hw` (upright, full size); `sieve_size_mm` is the model's own per-grain estimate."""
+    m = res.measurements
+    (h, w), (H, W) = res.mask.shape, size_hw
+    rows = (m.centroid_row_px + 0.5) * (H / h) - 0.5
+    cols = (m.centroid_col_px + 0.5) * (W / w) - 0.5
+    mm = float(m.mm_per_px)
+
+    def r(v: float, digits: int = 4) -> float:
+        return round(float(v), digits)
+
+    return [{"image": str(path), "id": int(m.ids[i]), "centroid_row_px": r(rows[i], 1),
+             "centroid_col_px": r(cols[i], 1),
+             "area_mm2": r(m.area_mm2[i]), "ecd_mm": r(m.eq_diameter_mm[i]),
+             "ellipse_major_mm": r(m.ellipse_major_mm[i]), "ellipse_minor_mm": r(m.ellipse_minor_mm[i]),
+             "feret_min_mm": r(m.min_feret_mm[i]), "feret_max_mm": r(m.max_feret_mm[i]),
+             "sieve_size_mm": r(res.sizes_mm[i]), "volume_mm3": r(m.volume_mm3[i]),
+             "touches_edge": bool(m.touches_edge[i]), "mask_mm_per_px": r(mm, 6)} for i in range(len(m))]
+
+
+def particle_table_current(path: Path) -> bool:
+    """Whether a particle table (or its partial file) is there with this version's columns."""
+    found = False
+    for p in (path, partial_path(path)):
+        if p.is_file():
+            try:
+                with open(p, newline="") as f:
+                    header = next(csv.reader(f), [])
+            except (OSError, UnicodeDecodeError, csv.Error):
+                return False
+            if header != PARTICLE_COLUMNS:
+                return False
+            found = True
+    return found
 
 
 class GrainOutputs:
@@ -578,9 +749,7 @@ class GrainOutputs:
             write_png(self.overlay_dir / f"{self.names.get(path, path.stem)}.png", over)
             self.written["overlays"] += 1
         if self.writer is not None:
-            self.writer.writerows({"image": str(path), "id": int(m.ids[i]), "area_mm2": float(m.area_mm2[i]),
-                                   "sieve_size_mm": float(res.sizes_mm[i]), "volume_mm3": float(m.volume_mm3[i]),
-                                   "touches_edge": bool(m.touches_edge[i])} for i in range(len(m)))
+            self.writer.writerows(particle_rows(path, res, size_hw))
             self.file.flush()
             self.n_particles += len(m)
         raw = ", ".join(f"{v:.3f}" for v in res.raw)

@@ -20,9 +20,10 @@ What a subclass gives:
 
 What it may override: `meta_problems` (its meta's own keys), `inference_module` (the module
 exported and timed: normalised images in, the outputs `read` takes out), `outputs` (e.g. test-time
-augmentation), `definitions` / `in_definition` (size definitions it can read beyond its own),
-`scorer` (evaluation beyond the d-values: segmentation, size errors), and the class flags
-`any_size`, `finds_grains`, `torchscript`, `int8`, `output_doc`.
+augmentation), `definitions` / `weightings` / `in_definition` (size definitions and weightings it
+can read beyond its own), `scorer` (evaluation beyond the d-values: segmentation, size errors),
+and the class attributes `any_size`, `finds_grains`, `tile_margin_px`, `torchscript`, `int8`,
+`output_doc`.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ import torch
 from torch import nn
 
 from .. import PsdError
-from ..psd import SIZE_DEFINITIONS, TARGETS
+from ..psd import GRAIN_WEIGHTINGS, SIZE_DEFINITIONS, TARGETS, WEIGHTINGS
 
 logger = logging.getLogger(__name__)
 LEGACY_DEFINITION = "b-axis"  # a model trained before sizes had names learnt the drawn size, the b-axis
@@ -75,6 +76,10 @@ class Estimator:
 
     any_size: ClassVar[bool] = False  # the network takes images of any H×W at its scale (else square)
     finds_grains: ClassVar[bool] = False  # predict can write masks, overlays and particle rows
+    # `outputs` are per-pixel maps at the input's size, each pixel's depending on the input within this many
+    # px only (its receptive field), and `read` takes maps of any size: predict may cut an image too large for
+    # one pass into tiles that overlap by this margin, stitch their maps and read them once. None: never tiled
+    tile_margin_px: ClassVar[int | None] = None
     torchscript: ClassVar[bool] = True  # export writes a TorchScript copy
     int8: ClassVar[bool] = True  # export and the benchmark may quantise it to int8
     output_doc: ClassVar[str] = "float32 Nx3: d10, d50, d90 in mm"
@@ -127,8 +132,15 @@ class Estimator:
         """The size definitions a model of this meta can give d-values in (its own first)."""
         return (model_definition(meta),)
 
+    @classmethod
+    def weightings(cls, meta: dict, definition: str) -> tuple[str, ...]:
+        """What d-values of `definition` (one of `definitions`) can count, of `psd.GRAIN_WEIGHTINGS`
+        (its training labels' weighting first): by default only that one."""
+        return (meta.get("weighting", "number"),)
+
     def in_definition(self, reading: Reading, definition: str, weighting: str, where: str) -> np.ndarray:
-        """d10/d50/d90 of `reading` in `definition` (one of `definitions()`)."""
+        """d10/d50/d90 of `reading` in `definition` (one of `definitions()`), `weighting` (one of
+        `weightings(definition)`)."""
         return reading.d_mm
 
     def scorer(self, results_root: Path, dataset: str) -> DatasetScorer:
@@ -156,12 +168,12 @@ def model_definition(meta: dict) -> str:
     return meta.get("size_definition", LEGACY_DEFINITION)
 
 
-def reading_of(est_cls: type[Estimator], meta: dict, requested: str | None) -> dict:
-    """What a model's d-values will be of: {"size_definition", "weighting"} — its own definition,
-    or `requested` when its estimator can read that (`Estimator.definitions`); anything else is
-    refused, naming what it can read."""
+def reading_of(est_cls: type[Estimator], meta: dict, requested: str | None, weighting: str | None = None) -> dict:
+    """What a model's d-values will be of: {"size_definition", "weighting"} — its own definition
+    and weighting, or those asked for when its estimator can read them (`Estimator.definitions`,
+    `Estimator.weightings`); anything else is refused in one line naming what it can read."""
     definitions = est_cls.definitions(meta)
-    own, weighting = model_definition(meta), meta.get("weighting", "number")
+    own, own_weighting = model_definition(meta), meta.get("weighting", "number")
     definition = requested or own
     if definition not in SIZE_DEFINITIONS:
         raise PsdError(f"--size-definition {definition!r}: not a size definition; one of {', '.join(SIZE_DEFINITIONS)}")
@@ -169,6 +181,24 @@ def reading_of(est_cls: type[Estimator], meta: dict, requested: str | None) -> d
         raise PsdError(f"--size-definition {definition}: this {meta.get('arch')} model reads "
                        f"{', '.join(d for d in SIZE_DEFINITIONS if d in definitions)} (trained on {own} labels); train "
                        f"one with labels.size_definition: {definition} to read {definition}")
+    if weighting is not None and weighting not in GRAIN_WEIGHTINGS:
+        raise PsdError(f"--weighting {weighting!r}: not a weighting; one of {', '.join(GRAIN_WEIGHTINGS)}")
+    allowed = est_cls.weightings(meta, definition)
+    weighting = weighting or (own_weighting if own_weighting in allowed else allowed[0])
+    if weighting not in allowed:
+        can = {}  # weightings → the definitions read in them
+        for d in (d for d in SIZE_DEFINITIONS if d in definitions):
+            can.setdefault(tuple(w for w in GRAIN_WEIGHTINGS if w in est_cls.weightings(meta, d)), []).append(d)
+        said = "; ".join(f"{', '.join(ds)} {'-, '.join(ws)}-weighted" for ws, ds in can.items())
+        given = [d for ws, ds in can.items() if weighting in ws for d in ds]
+        if given:
+            how = f"ask for it with --size-definition {' or '.join(given)}"
+        elif weighting in WEIGHTINGS:
+            how = f"train one with labels.weighting: {weighting}"
+        else:
+            how = "a model that finds grains (arch 'instances') measures it with --size-definition feret-min"
+        raise PsdError(f"--weighting {weighting} of {definition}: this {meta.get('arch')} model reads {said} "
+                       f"(trained on {own_weighting}-weighted {own} labels); {how}")
     return {"size_definition": definition, "weighting": weighting}
 
 

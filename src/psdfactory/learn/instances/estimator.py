@@ -16,13 +16,13 @@ import torch
 from torch import nn
 
 from ... import PsdError
-from ...psd import FOOTPRINT_DEFINITIONS, NAMES, SOLID_DEFINITIONS, TARGETS, weighted_percentiles
+from ...psd import FOOTPRINT_DEFINITIONS, GRAIN_WEIGHTINGS, NAMES, SOLID_DEFINITIONS, TARGETS, weighted_percentiles
 from ..augment import TTA_VIEWS, unview, view
 from ..estimator import DatasetScorer, Estimator, Reading, model_definition
 from ..readout import apply_readout
 from . import ARCH
 from .measure import DEFAULT_SIEVE_METHOD, SIEVE_METHODS, InstanceMeasurements, measure_instances, sieve_size
-from .net import DECODER, FULL_RES, TRUNK, InstanceMaps, net_from_meta
+from .net import DECODER, FULL_RES, RECEPTIVE_RADIUS_PX, TRUNK, InstanceMaps, net_from_meta
 from .scoring import f1_score, fully_visible, match_instances, size_errors
 from .stats import STAT_NAMES, instance_stats, raw_psd
 from .targets import MAPS, MASK_MAPS, decode_size
@@ -67,6 +67,9 @@ class InstanceEstimator(Estimator):
     any_size = True
     finds_grains = True
     torchscript = False
+    # its maps at a pixel depend on the input within the network's receptive field only, and the watershed runs
+    # on the stitched maps once: tiles need to overlap by that radius, not by a grain (none is ever cut)
+    tile_margin_px = -(-RECEPTIVE_RADIUS_PX // 32) * 32
     int8 = False  # its maps feed a watershed: int8 is not offered (and not measured) for it
     output_name = "maps"
     output_doc = ("float32 NxCxHxW maps in [0, 1], C = len(maps): foreground, boundary, normalised distance, size map "
@@ -117,9 +120,21 @@ class InstanceEstimator(Estimator):
         (measured on the whole grains it finds)."""
         return (model_definition(meta), *(meta.get("readouts") or {}), *FOOTPRINT_DEFINITIONS)
 
+    @classmethod
+    def weightings(cls, meta: dict, definition: str) -> tuple[str, ...]:
+        """A solid definition's read-out is fitted to labels of the training weighting only; the
+        footprint definitions, measured on the grains found, are weighted by number, footprint
+        area or volume alike."""
+        if definition in FOOTPRINT_DEFINITIONS:
+            own = meta.get("weighting", "number")
+            return (own, *(w for w in GRAIN_WEIGHTINGS if w != own))
+        return super().weightings(meta, definition)
+
     def in_definition(self, reading: Reading, definition: str, weighting: str, where: str) -> np.ndarray:
         """d10/d50/d90 in the definition asked: the model's own read-out, another solid
-        definition's read-out, or a footprint definition measured on the whole grains it found."""
+        definition's read-out, or a footprint definition measured on the whole grains it found
+        (those touching the image's edge left out: their size there is not theirs), weighted by
+        number, footprint area or volume."""
         res = reading.grains
         if definition == model_definition(self.meta):
             return res.calibrated
@@ -130,7 +145,8 @@ class InstanceEstimator(Estimator):
             if not whole.any():
                 raise PsdError(f"{where}: no whole grain found (every one touches the image's edge): no {definition} "
                                "to measure")
-            return weighted_percentiles(size[whole], m.volume_mm3[whole] if weighting == "volume" else None)
+            weights = {"number": None, "area": m.area_mm2, "volume": m.volume_mm3}[weighting]
+            return weighted_percentiles(size[whole], None if weights is None else weights[whole])
         return apply_readout(self.meta["readouts"][definition], res.stats[None])[0]
 
     def scorer(self, results_root: Path, dataset: str) -> DatasetScorer:

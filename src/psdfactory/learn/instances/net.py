@@ -17,6 +17,11 @@ logger = logging.getLogger(__name__)
 TRUNK = "resnet18"
 DECODER = (64, 32, 16)  # channels of the decoder stages at strides 4, 2, 1
 FULL_RES = 8  # channels of the full-resolution skip
+# How far (px) an output pixel's maps see: 70 px at most on any side (measured by the gradient of one output
+# pixel for every position modulo the trunk's stride: the stem's 7x7/2 conv and 3x3/2 pool, layer1's four 3x3
+# convs at stride 4, layer2's four at stride 8, then the decoder's bilinear upsampling and 3x3 convs at strides 4,
+# 2 and 1). Nothing farther changes them: tests/test_photos.py measures it again.
+RECEPTIVE_RADIUS_PX = 70
 
 
 # ---------------------------------------------------------------------------------------------
