@@ -290,6 +290,28 @@ def test_predict_weighting_flag_and_resume(synthetic_model, tmp_path, capsys):
     assert "(feret-min, area-weighted)" in capsys.readouterr().out
 
 
+def test_resume_predicts_again_when_the_particle_table_is_of_an_older_version(synthetic_model, tmp_path, caplog):
+    """The skipped photos' grain rows are carried over from the previous table; a table with
+    other columns (an older psdfactory's) cannot give them, so every photo is predicted again."""
+    from psdfactory.cli import main
+
+    for i in range(2):
+        Image.fromarray(grain_bed(256, 256, 30, seed=i)[0]).save(tmp_path / f"bed{i}.png")
+    grains, out = tmp_path / "grains.csv", tmp_path / "psd.csv"
+    args = ["predict", "--model", "m.pt", "--out", str(out), "--particles", str(grains),
+            str(tmp_path / "bed0.png"), str(tmp_path / "bed1.png")]
+    assert main(args) == 0 and len(synthetic_model) == 2
+    rows = read_csv(grains)
+    assert main([*args, "--resume"]) == 0 and len(synthetic_model) == 2  # nothing predicted, rows kept
+    assert read_csv(grains) == rows
+    with open(grains, "w") as f:  # the table as an older predict wrote it
+        f.write("image,id,area_mm2,sieve_size_mm,volume_mm3,touches_edge\n")
+    with caplog.at_level(logging.INFO, logger="psdfactory"):
+        assert main([*args, "--resume"]) == 0
+    assert len(synthetic_model) == 4 and "every image is predicted again" in caplog.text
+    assert read_csv(grains) == rows
+
+
 def test_readings_the_model_cannot_give_are_refused_in_one_line(synthetic_model, tmp_path, capsys):
     from psdfactory.cli import main
     from psdfactory.deploy.predict import reading
