@@ -26,6 +26,7 @@ include: "rules/label.smk"
 include: "rules/manifest.smk"
 include: "rules/train.smk"
 include: "rules/evaluate.smk"
+include: "rules/photos.smk"
 include: "rules/benchmark.smk"
 include: "rules/report.smk"
 

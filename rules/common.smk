@@ -12,6 +12,7 @@ from snakemake.exceptions import WorkflowError
 
 from psdfactory import PsdError
 from psdfactory import config as psd_config
+from psdfactory import photoset as psd_photoset
 from psdfactory import preflight as psd_preflight
 from psdfactory import runlock as psd_runlock
 from psdfactory.learn.registry import check_architectures
@@ -41,6 +42,7 @@ RESULTS = config["results"].rstrip("/")  # every job that needs the results root
 DATASETS = list(config["datasets"])
 EVALUATED = psd_config.evaluation_datasets(config)  # every model is scored on these
 ARCHS = list(config["train"]["architectures"])
+PHOTOS = list(config["photos"])  # photo sets: labelled photographs every model is evaluated on
 
 
 # ---- fail fast: what would otherwise fail hours later (or hang) inside a job ------------------
@@ -83,6 +85,7 @@ def preflight():
     try:
         psd_preflight.check_results(RESULTS)
         check_architectures(config["train"]["architectures"])
+        psd_photoset.check(config)  # the photo sets' files: there, readable, each photo with its scale
         psd_preflight.check_slurm(profile_resources(), os.environ, getpass.getuser())
     except PsdError as e:
         raise WorkflowError(f"psdfactory: {e}") from None
@@ -123,6 +126,7 @@ wildcard_constraints:
     shard="[0-9]{5}",
     batch="[0-9]{5}",
     arch="[a-z][a-z0-9_]*",
+    photoset="[A-Za-z][A-Za-z0-9_]*",
 
 
 def all_cores(wildcards):
@@ -201,6 +205,39 @@ def evaluate_params(wildcards):
             "arch": wildcards.arch,
         }
     )
+
+
+def photo_params(wildcards):
+    return as_json(
+        {
+            "photoset": psd_config.photo_params(config, wildcards.photoset),
+            "precision": config["evaluate"]["precision"],
+        }
+    )
+
+
+def photo_set(wildcards):
+    """The photo set of a job (psdfactory.photoset: its photos, masks and tables, checked)."""
+    try:
+        return psd_photoset.resolve(wildcards.photoset, config["photos"][wildcards.photoset])
+    except PsdError as e:
+        raise WorkflowError(f"psdfactory: {e}") from None
+
+
+def photo_files(wildcards):
+    """A photo set's files (photos, masks, CSVs): its evaluation's inputs."""
+    return [str(f) for f in photo_set(wildcards).files()]
+
+
+def photo_threads(wildcards):
+    """A photo set's evaluation: a thread per photo, up to every core (a job of a few photos is mostly
+    PyTorch's start, and runs beside another)."""
+    return max(1, min(all_cores(wildcards), len(photo_set(wildcards).photos)))
+
+
+def photo_targets(name):
+    """Every model's evaluation on the photo sets: eval/<arch>/photos/<set>/`name`."""
+    return expand(f"{RESULTS}/eval/{{arch}}/photos/{{photoset}}/{name}", arch=ARCHS, photoset=PHOTOS)
 
 
 def benchmark_params(wildcards):

@@ -8,6 +8,8 @@ rule report:
         ceilings=expand(f"{RESULTS}/{{dataset}}/ceiling.json", dataset=DATASETS),
         manifests=shards_of(DATASETS, "scenes"),
         backends=compare_targets(),
+        photos=photo_targets("metrics.json"),
+        overlays=photo_targets("overlays"),  # the figures each photos' metrics.json names
     output:
         html=report(
             f"{RESULTS}/report/report.html",
@@ -25,7 +27,8 @@ rule report:
     shell:
         "psdfactory --log {log:q} report --params {params.config:q} --metrics {input.metrics:q} --scatters {input.scatter:q}"
         " --histories {input.histories:q} --bench {input.bench:q} --manifests {input.manifests:q}"
-        " --contact-sheets {input.sheets:q} --ceilings {input.ceilings:q} {params.compare:q} --html {output.html:q} --md {output.md:q}"
+        " --contact-sheets {input.sheets:q} --ceilings {input.ceilings:q} {params.compare:q} --photos {input.photos:q}"
+        " --html {output.html:q} --md {output.md:q}"
 
 
 rule compare_backends:

@@ -242,7 +242,7 @@ def _synthetic_report(tmp_path: Path, photos: bool = True) -> tuple[Path, Path]:
     from psdfactory.io import write_parquet
     from psdfactory.manifest import SCENE_SCHEMA
 
-    cfg, metrics = _summary_config(photos)
+    cfg, metrics = _summary_config(photos=False)  # the photos: a photo set (config `photos`, rules/photos.smk)
     src = tmp_path / "in"
     rows = (_scene_rows("train", ["train"] * 8 + ["val"] * 2 + ["test"] * 2) + _scene_rows(LONG, ["test"] * 3)
             + _scene_rows(CYCLES, ["test"] * 2))
@@ -264,9 +264,14 @@ def _synthetic_report(tmp_path: Path, photos: bool = True) -> tuple[Path, Path]:
                "footprints": {"d10_mm": -0.2, "d50_mm": 0.85, "d90_mm": 0.9}, "sampling": None}
     (src / "train").mkdir()
     (src / "train" / "ceiling.json").write_text(json.dumps(ceiling))
+    # a photo set (config `photos`) every model was evaluated on: its figures in the card and a section
+    from .test_photo_sets import write_photo_results
+
+    photo_sets = ({a: {"real": write_photo_results(src / "photos", a, "real", a == "instances")} for a in SCORES}
+                  if photos else {})
     inputs = ReportInputs(**files, manifests=[shard],
                           contact_sheets={LONG: _png(src / LONG / "contact_sheet.png", (704, 1056))},
-                          ceilings={"train": src / "train" / "ceiling.json"})
+                          ceilings={"train": src / "train" / "ceiling.json"}, photos=photo_sets)
     out = tmp_path / "out"
     build_report(cfg, inputs, out / "report.html", out / "report.md")
     return out / "report.html", out / "report.md"
@@ -372,6 +377,8 @@ def test_report_fits_a_1000px_window_with_the_summary_on_the_first_screen(tmp_pa
     assert re.search(r"<h1>psdfactory report</h1>\s*<section id='summary'", text)
     assert not re.search(r"-\d[\d.]* \(-?\d+ %\)", text + md.read_text())  # no fraction of a negative R²
     assert "-4.603 (—)" in text and "<details><summary>The configuration of this run (YAML)</summary>" in text
+    assert "<h2>Photos: real</h2>" in text and "photos: 2 photos vs reference (ellipse-minor)" in text
+    assert "| barton_creek.jpg | 300 / 347 | 0.800 | 0.667 | 0.620 |" in md.read_text()
     page = tmp_path / "measured.html"
     page.write_text(text.replace("</body>", MEASURE + "</body>"))
     cmd = [exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
@@ -389,7 +396,8 @@ def test_report_fits_a_1000px_window_with_the_summary_on_the_first_screen(tmp_pa
     assert card["opacity"] == 1 and card["height"] > 100 and card["on_top"]
     assert card["top"] < 800 and card["first_row_bottom"] < 800  # the first screen shows it, a model's row too
     images = {i["alt"]: i for i in m["images"]}
-    assert len(images) == 2 + 2 * len(SCORES)  # histograms, a contact sheet, a scatter and a loss curve each
+    # histograms, a contact sheet, a scatter and a loss curve each, the instance model's two photo overlays
+    assert len(images) == 2 + 2 * len(SCORES) + 2
     for i in images.values():
         assert 0 < i["shown"] <= min(i["natural"], 1000) + 0.5, i  # never blown up, never wider than the page
     # the smallest font of the report's own figure, as shown: at least 10 px

@@ -11,6 +11,7 @@ import pytest
 
 from psdfactory.scene.render.cycles import DEFAULT_PYTHON
 
+from .test_photo_sets import make_photo_set, photo_spec
 from .workflow_helpers import REPO, snakemake, write_config
 
 # the report's side-by-side of both render backends needs Blender (`make test` installs it)
@@ -52,7 +53,9 @@ TINY = {
 
 
 def test_tiny_workflow_end_to_end(tmp_path):
-    cfgfile = write_config(tmp_path / "tiny.yaml", dict(TINY, results=str(tmp_path / "results")))
+    # a photo set (config `photos`): one small photo with its reference mask and d-values, made here
+    photos = {"field": photo_spec(make_photo_set(tmp_path / "photos", n=1, size=(120, 120)))}  # 60 mm a side
+    cfgfile = write_config(tmp_path / "tiny.yaml", dict(TINY, results=str(tmp_path / "results"), photos=photos))
     # PyTorch's portable path, as on a CPU without AVX-512/bf16/VNNI: the run must not care
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(PLUGINS), os.environ.get("PYTHONPATH")]))}
     r = snakemake("-j2", "--configfile", str(cfgfile), workdir=tmp_path, env={**env, "ATEN_CPU_CAPABILITY": "avx2"})
@@ -104,6 +107,15 @@ def test_tiny_workflow_end_to_end(tmp_path):
     html = (res / "report" / "report.html").read_text()
     assert "Inference speed" in html and "efficientnet_b0" in html and "Instance estimator" in html
     assert "meancolour" in html
+    # every model on the photo set: its figures, a row per photo, an overlay each; the report shows them
+    for arch in TINY["train"]["architectures"]:
+        d = res / "eval" / arch / "photos" / "field"
+        m = json.loads((d / "metrics.json").read_text())
+        assert m["arch"] == arch and list(m["photos"]) == ["a.png"] and (d / "overlays" / "a.png").is_file()
+        assert m["finds_grains"] == (arch == "instances") and ("detection" in m["pooled"]) == (arch == "instances")
+        assert m["photos"]["a.png"]["reference_mm"] == {"d10": 4.0, "d50": 6.0, "d90": 8.0}
+        assert len((d / "photos.csv").read_text().splitlines()) == 2
+    assert "<h2>Photos: field</h2>" in html and "photos: 1 photo vs reference (ellipse-minor)" in html
     # and users predict with it and export it through the CLI
     image = str(res / "train" / "scenes" / "train-000000" / "image.png")
     model = str(res / "models" / "meancolour" / "model.pt")

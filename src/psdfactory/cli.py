@@ -71,14 +71,18 @@ def cmd_compare_backends(a: argparse.Namespace) -> None:
 def cmd_check_config(a: argparse.Namespace) -> None:
     from .config import load_config
     from .learn.registry import check_architectures
+    from .photoset import check
 
     cfg = load_config(Path(a.configfile))
     try:
         check_architectures(cfg["train"]["architectures"])
+        photo_sets = check(cfg)  # their files, relative to the working directory as in a run
     except PsdError as e:
         raise PsdError(f"{a.configfile}: invalid config: {e}") from None
     n = sum(d["n_scenes"] for d in cfg["datasets"].values())
-    print(f"{a.configfile}: OK ({len(cfg['datasets'])} datasets, {n} scenes)")
+    photos = sum(len(s.photos) for s in photo_sets.values())
+    also = f", {len(photo_sets)} photo set{'s' * (len(photo_sets) != 1)} of {photos} photos" if photo_sets else ""
+    print(f"{a.configfile}: OK ({len(cfg['datasets'])} datasets, {n} scenes{also})")
 
 
 def cmd_train(a: argparse.Namespace) -> None:
@@ -99,6 +103,20 @@ def cmd_evaluate(a: argparse.Namespace) -> None:
         plot_history(Path(a.history), p.get("arch", Path(a.model).parent.name), out / "loss_curve.png")
 
 
+def cmd_evaluate_photos(a: argparse.Namespace) -> None:
+    from .deploy.photos import evaluate_photos
+    from .photoset import resolve
+
+    p = _params(a.params)
+    spec = p.get("photoset")
+    if not isinstance(spec, dict) or not isinstance(spec.get("name"), str):
+        raise PsdError('--params must hold "photoset": a photo set\'s config slice with its name '
+                       "(config.photo_params)")
+    _threads(a.threads)
+    evaluate_photos(Path(a.model), resolve(spec["name"], spec), Path(a.out_dir),
+                    precision=p.get("precision", "fp32"))
+
+
 def cmd_benchmark(a: argparse.Namespace) -> None:
     from .deploy.benchmark import benchmark
     from .io import write_json
@@ -115,7 +133,7 @@ def cmd_report(a: argparse.Namespace) -> None:
 
     outputs = {"--html": Path(a.html), "--md": Path(a.md)}
     reads = [a.config_json, *a.metrics, *a.scatters, *a.histories, *a.bench, *a.manifests, *a.contact_sheets,
-             *(a.compare or []), *a.ceilings]
+             *(a.compare or []), *a.ceilings, *a.photos]
     if outputs["--html"].suffix.lower() != ".html" or outputs["--md"].suffix.lower() != ".md":
         raise PsdError(f"--html {a.html} must end in .html and --md {a.md} in .md")
     if same_file(outputs["--html"], outputs["--md"]):
@@ -133,7 +151,7 @@ def cmd_report(a: argparse.Namespace) -> None:
     else:
         cfg = _params(a.params)
     inputs = ReportInputs.from_lists(cfg, a.metrics, a.scatters, a.histories, a.bench, a.manifests,
-                                     a.contact_sheets, a.compare, a.ceilings)
+                                     a.contact_sheets, a.compare, a.ceilings, a.photos)
     build_report(cfg, inputs, Path(a.html), Path(a.md))
     logger.info(f"wrote {a.html} and {a.md}")
 
@@ -296,6 +314,8 @@ WORKFLOW_COMMANDS = {
     "ceiling": ("what a dataset's images allow: cross-validated R² ceilings per target", "rules/evaluate.smk"),
     "train": ("train one architecture → model.pt, history.csv, TensorBoard logs", "rules/train.smk"),
     "evaluate": ("metrics, predictions and plots of a trained model", "rules/evaluate.smk"),
+    "evaluate-photos": ("a trained model on a photo set: grains and PSD vs the reference, overlays",
+                        "rules/photos.smk"),
     "benchmark": ("inference speed (fp32 eager vs the fast path) and accuracy change", "rules/benchmark.smk"),
     "compare-backends": ("render a few scenes with both render backends, side by side", "rules/report.smk"),
     "report": ("the final HTML report and its Markdown twin", "rules/report.smk"),
@@ -624,6 +644,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=0, metavar="N", help=threads)
     p.set_defaults(func=cmd_evaluate)
 
+    p = workflow("evaluate-photos", "Each photo is read at its mm per px and resized to the model's scale, as predict "
+                 "does; the grains found are matched to the reference masks at the photo's resolution (IoU >= 0.5; "
+                 "grains the border cuts left out) and the PSD compared with the reference d10/d50/d90.")
+    p.add_argument("--params", required=True, metavar="JSON",
+                   help='JSON: {"photoset": the config\'s photos.<name> with "name", "precision": "fp32"}')
+    p.add_argument("--model", required=True, metavar="FILE", help="the model.pt to evaluate")
+    p.add_argument("--out-dir", required=True, metavar="DIR",
+                   help="gets metrics.json, photos.csv (a row per photo) and overlays/<photo>.png")
+    p.add_argument("--threads", type=int, default=0, metavar="N", help=threads)
+    p.set_defaults(func=cmd_evaluate_photos)
+
     p = workflow("benchmark")
     _job_args(p, 'JSON: {"dataset", "batch_size", "seconds", "repeats"}', "the model.pt to time")
     p.add_argument("--out", required=True, metavar="FILE", help="the benchmark's JSON to write")
@@ -652,6 +683,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="<dataset>/contact_sheet.png, one per dataset in the config's order (or none)")
     p.add_argument("--ceilings", nargs="*", default=[], metavar="JSON",
                    help="<dataset>/ceiling.json, one per dataset in the config's order (or none)")
+    p.add_argument("--photos", nargs="*", default=[], metavar="JSON",
+                   help="eval/<arch>/photos/<set>/metrics.json, one per architecture and photo set (or none); "
+                   "the overlays they name are read from overlays/ beside each")
     p.add_argument("--compare", nargs=2, metavar=("JSON", "PNG"),
                    help="the backend comparison's compare.json and compare.png")
     p.add_argument("--html", required=True, metavar="FILE", help="the report to write (.html)")

@@ -444,6 +444,22 @@ def semantic_problems(config: dict) -> list[str]:
                                 f"{', '.join(sorted(dataset_splits(config, d)))}): it would add nothing to training")
     if len(set(t["architectures"])) != len(t["architectures"]):
         problems.append("train.architectures: lists an architecture twice")
+    problems += photo_problems(config)
+    return problems
+
+
+def photo_problems(config: dict) -> list[str]:
+    """What is wrong with the photo sets that shows without opening a file (their files are
+    checked by `photoset.check`: at check-config and the workflow's preflight, where the working
+    directory their folders are relative to is the run's)."""
+    from .photoset import pattern_problem
+
+    problems = []
+    for name, p in config["photos"].items():
+        if name in config["datasets"]:
+            problems.append(f"photos.{name}: a dataset has this name too; give the photo set a name of its own")
+        if (problem := pattern_problem(p["masks"])) is not None:
+            problems.append(f"photos.{name}.masks: {problem}")
     return problems
 
 
@@ -561,6 +577,12 @@ def evaluation_datasets(config: dict) -> list[str]:
     training images for train.datasets, never a test)."""
     return [d for d in config["datasets"] if "rerender_of" not in config["datasets"][d]
             or "test" in dataset_splits(config, d)]
+
+
+def photo_params(config: dict, name: str) -> dict:
+    """A photo set's slice: its settings and name (what its evaluation depends on besides the
+    model and the files)."""
+    return {"name": name, **copy.deepcopy(config["photos"][name])}
 
 
 def main_training_dataset(config: dict) -> str:

@@ -30,11 +30,12 @@ class ReportInputs:
     contact_sheets: dict[str, Path] = field(default_factory=dict)  # dataset → <dataset>/contact_sheet.png
     compare: tuple[Path, Path] | None = None  # the backend comparison: (compare.json, compare.png)
     ceilings: dict[str, Path] = field(default_factory=dict)  # dataset → <dataset>/ceiling.json
+    photos: dict[str, dict[str, Path]] = field(default_factory=dict)  # arch → photo set → its metrics.json
 
     @classmethod
     def from_lists(cls, config: dict, metrics: list, scatters: list, histories: list, bench: list, manifests: list,
                    contact_sheets: list | None = None, compare: list | None = None,
-                   ceilings: list | None = None) -> ReportInputs:
+                   ceilings: list | None = None, photos: list | None = None) -> ReportInputs:
         """Per-architecture lists in the order of ``train.architectures`` (a list keeps its
         order through the rule's JSON); a dataset's files (``<results>/<dataset>/contact_sheet.png``,
         ``.../ceiling.json``) keyed by their dataset's folder, not by position: the config reaches
@@ -58,7 +59,23 @@ class ReportInputs:
                    keyed("histories", histories, archs), keyed("bench", bench, archs), [Path(m) for m in manifests],
                    by_dataset("contact sheets", contact_sheets) if contact_sheets else {},
                    (Path(compare[0]), Path(compare[1])) if compare else None,
-                   by_dataset("ceilings", ceilings) if ceilings else {})
+                   by_dataset("ceilings", ceilings) if ceilings else {},
+                   photo_inputs(archs, list(config.get("photos") or {}), photos or []))
+
+
+def photo_inputs(archs: list[str], sets: list[str], files: list) -> dict[str, dict[str, Path]]:
+    """eval/<arch>/photos/<set>/metrics.json files keyed by their folders: one for every model and
+    photo set of the config, none else."""
+    out: dict[str, dict[str, Path]] = {}
+    for f in map(Path, files):
+        arch, name = f.parents[2].name, f.parent.name
+        if f.parents[1].name != "photos" or arch not in archs or name not in sets or name in out.get(arch, {}):
+            raise PsdError(f"photos: {f} is not eval/<arch>/photos/<set>/metrics.json of one of the models "
+                           f"({', '.join(archs)}) and photo sets ({', '.join(sets) or 'none'}), once each")
+        out.setdefault(arch, {})[name] = f
+    if files and sum(map(len, out.values())) != len(archs) * len(sets):
+        raise PsdError(f"photos: {len(files)} metrics files for {len(archs)} models x {len(sets)} photo sets")
+    return out
 
 
 def dataset_tables(manifests: list[Path], datasets: list[str]) -> dict:
@@ -263,6 +280,35 @@ class Summary:
     yardstick: str  # what the recommendation ranks on, in words
     use: dict[str, str]  # model → "use for …" line
     note: str
+    photo_sets: list[PhotoColumn] = field(default_factory=list)  # the config's photo sets evaluated
+    photo_cells: dict[str, dict[str, list[str]]] = field(default_factory=dict)  # model → set → [F1, PSD error]
+
+
+@dataclass(frozen=True)
+class PhotoColumn:
+    name: str
+    about: str  # e.g. "2 photos vs reference (ellipse-minor)"
+
+
+def photo_summary(photos: dict[str, dict[str, dict]]) -> tuple[list[PhotoColumn], dict[str, dict[str, list[str]]]]:
+    """The summary card's photo column groups: per photo set, per model, the pooled F1 of the grains
+    found and the mean |relative error| of d50 / d90 against the reference (a model that finds no
+    grains has no F1, and its error is of its own reading, in its own size definition)."""
+    sets = list(dict.fromkeys(s for per in photos.values() for s in per))
+    columns = []
+    for s in sets:
+        first = next(per[s] for per in photos.values() if s in per)
+        n = len(first["photos"])
+        columns.append(PhotoColumn(s, f"{n} photo{'s' * (n != 1)} vs reference ({first['size_definition']})"))
+    cells = {}
+    for arch, per in photos.items():
+        cells[arch] = {}
+        for s, m in per.items():
+            det = m["pooled"].get("detection")
+            err = m["pooled"]["psd_abs_rel_err"]
+            cells[arch][s] = [_fmt(det["f1"], 2) if det else MISSING,
+                              " / ".join(_pct(err.get(n)) for n in SUMMARY_TARGETS)]
+    return columns, cells
 
 
 def _mean_score(d: dict | None) -> float | None:
@@ -281,12 +327,15 @@ def _ips(v: float | None) -> str:
     return MISSING if v is None else (f"{v:.0f}" if v >= 10 else f"{v:.1f}")
 
 
-def summarize(config: dict, metrics: dict[str, dict], bench: dict[str, dict], tables: dict) -> Summary:
+def summarize(config: dict, metrics: dict[str, dict], bench: dict[str, dict], tables: dict,
+              photos: dict[str, dict[str, dict]] | None = None) -> Summary:
     """Per model, the d50/d90 R² and relative error (MAE ÷ mean true size) on every evaluated
     dataset, the images/s of its fast path, and a recommendation computed from them: "measure
     with" the best mean d50/d90 R² on the yardstick (photos where evaluated; else the renderers no
     model was trained on; else every dataset), "when speed matters" the fastest within R2_MARGIN
-    of it, and for the rest why not."""
+    of it, and for the rest why not. `photos` (model → photo set → its photo metrics) adds a
+    column group per photo set (`photo_summary`): shown, never ranked on — the config's photo sets
+    are for measuring, and nothing is chosen by its score on them."""
     archs = list(metrics)
     columns = []
     for ds in evaluated_datasets(config, metrics):
@@ -371,7 +420,13 @@ def summarize(config: dict, metrics: dict[str, dict], bench: dict[str, dict], ta
             + (f" (batch {', '.join(map(str, batches))})" if batches else "")
             + ", each at its own input size"
             + (f"; ranked on {device}." if device else "."))
-    return Summary(columns, r2, err, devices, speed, batch, yard_text, use, note)
+    photo_sets, photo_cells = photo_summary(photos or {})
+    if photo_sets:
+        note += (f" Photos ({', '.join(c.name for c in photo_sets)}): F1 of the grains found against the reference "
+                 "masks (IoU ≥ 0.5, grains cut by the border left out) and the mean |relative error| of d50 / d90 "
+                 "against the reference's, in its size definition (a model without an F1 finds no grains: the "
+                 "error of its own reading, in its own definition); measured, never ranked on.")
+    return Summary(columns, r2, err, devices, speed, batch, yard_text, use, note, photo_sets, photo_cells)
 
 
 def summary_table(s: Summary) -> tuple[list[str], list[list[str]]]:
@@ -379,8 +434,11 @@ def summary_table(s: Summary) -> tuple[list[str], list[list[str]]]:
     head = ["model"]
     for c in s.columns:
         head += [f"R² d50 / d90 on {c.dataset} ({c.renderer})", f"error d50 / d90 on {c.dataset}"]
+    for p in s.photo_sets:
+        head += [f"F1 on {p.name} (photos)", f"error d50 / d90 on {p.name}"]
     head += [f"img/s on {d}" for d in s.devices]
     rows = [[a] + [x for c in s.columns for x in (" / ".join(s.r2[a][c.dataset]), " / ".join(s.err[a][c.dataset]))]
+            + [x for p in s.photo_sets for x in s.photo_cells.get(a, {}).get(p.name, [MISSING, MISSING])]
             + [_ips(s.speed[a].get(d)) for d in s.devices] for a in s.r2]
     return head, rows
 
@@ -390,13 +448,19 @@ def summary_html(s: Summary, warning: str = "") -> str:
     e = html.escape
     top = "<th rowspan='2'>model</th>" + "".join(
         f"<th colspan='2'>{_wrap(c.dataset)}<br><span class='sub'>{e(c.renderer)}, {e(c.split)}</span></th>"
-        for c in s.columns) + f"<th colspan='{max(1, len(s.devices))}'>speed</th>"
+        for c in s.columns)
+    top += "".join(f"<th colspan='2'>{_wrap(p.name)}<br><span class='sub'>photos: {e(p.about)}</span></th>"
+                   for p in s.photo_sets)
+    top += f"<th colspan='{max(1, len(s.devices))}'>speed</th>"
     sub = "".join("<th>R² d50 / d90</th><th>error d50 / d90</th>" for _ in s.columns)
+    sub += "".join("<th>F1</th><th>error d50 / d90</th>" for _ in s.photo_sets)
     sub += "".join(f"<th>img/s<br><span class='sub'>{e(d)}</span></th>" for d in s.devices) or "<th>img/s</th>"
     body = "".join(
         f"<tr><td>{_wrap(a)}</td>"
         + "".join(f"<td>{e(' / '.join(s.r2[a][c.dataset]))}</td><td>{e(' / '.join(s.err[a][c.dataset]))}</td>"
                   for c in s.columns)
+        + "".join(f"<td>{e(x)}</td>" for p in s.photo_sets
+                  for x in s.photo_cells.get(a, {}).get(p.name, [MISSING, MISSING]))
         + ("".join(f"<td>{e(_ips(s.speed[a].get(d)))}</td>" for d in s.devices) or f"<td>{MISSING}</td>")
         + "</tr>" for a in s.r2)
     uses = "".join(f"<li><b>{_wrap(a)}</b>: {_wrap(u)}</li>" for a, u in s.use.items())
@@ -473,6 +537,99 @@ INSTANCE_NOTE = ("The instance estimator segments every particle (a ResNet-18-tr
                  "particle bordering a higher one (it may be partly hidden), per method: min Feret diameter and "
                  "ellipse minor axis of the footprint, and the size map (the network's estimate of the whole "
                  "particle, median over the instance).")
+
+
+PHOTOS_NOTE = ("Each photo is read at its own mm per pixel and resized to the model's scale, as predict does. "
+               "Grains found vs the reference grains: matched one-to-one at IoU ≥ 0.5 at the photo's resolution (the "
+               "model's instance mask resized nearest-neighbour to it, the reference masks as they are); reference "
+               "grains cut by the image border are left out, and a grain found on the border counts only if it "
+               "matches a reference grain (P: precision, R: recall). Size error: median / p90 of |est − ref| / ref of "
+               "the matched grains not touching the border, in the reference's size definition and of the model's "
+               "sieve-size estimate. d10 / d50 / d90: number-weighted percentiles of the grains found not touching "
+               "the border, in the reference's definition, and their error relative to the reference; a model that "
+               "finds no grains gives its own reading, in its own definition. The reference is a peer tool's "
+               "segmentation, not hand truth; these photos are for measuring only: nothing is fitted or chosen on "
+               "them.")
+
+
+def _signed_pct(v) -> str:
+    return MISSING if v is None or not _finite(v) else f"{100 * v:+.0f} %"
+
+
+def _three(d: dict | None, fmt) -> str:
+    return MISSING if not d else " / ".join(fmt(d.get(n)) for n in NAMES)
+
+
+def _error_pair(e: dict | None) -> str:
+    return MISSING if not e or not e.get("n") else f"{100 * e['median']:.1f} % / {100 * e['p90']:.1f} %"
+
+
+def photo_table(m: dict) -> tuple[list[str], list[list[str]]]:
+    """One model on one photo set: a row per photo, then the pooled row (sums, the pooled grains,
+    the mean |relative error| of the d-values). A model that finds no grains: its d-values only."""
+    grains = bool(m["finds_grains"])
+    psd_head = ["d10 / d50 / d90 (mm)", "reference (mm)", "error d10 / d50 / d90"]
+    head = ["photo", *(["grains found / reference", "P", "R", "F1", "size error median / p90",
+                        "sieve estimate error median / p90"] if grains else []), *psd_head]
+
+    def mm(v) -> str:
+        return _fmt(v, 1) if _finite(v) and v >= 10 else _fmt(v, 2)
+
+    def counts(found, ref) -> str:
+        return MISSING if found is None else f"{found} / {MISSING if ref is None else ref}"
+
+    rows = []
+    for name, r in m["photos"].items():
+        det, se = r.get("detection") or {}, r.get("size_error") or {}
+        found = [counts(r.get("n_found_off_border"), r.get("n_reference")),
+                 *(_fmt(det.get(k), 3) for k in ("precision", "recall", "f1")),
+                 _error_pair(se.get("size_definition")), _error_pair(se.get("sieve"))]
+        rows.append([name, *(found if grains else []), _three(r["psd_mm"], mm), _three(r.get("reference_mm"), mm),
+                     _three(r["psd_rel_err"], _signed_pct)])
+    p = m["pooled"]
+    det, se = p.get("detection") or {}, p.get("size_error") or {}
+    n_found = [r.get("n_found_off_border") for r in m["photos"].values()]
+    refs = [r.get("n_reference") for r in m["photos"].values()]
+    found = [counts(sum(n_found) if None not in n_found else None, sum(refs) if None not in refs else None),
+             *(_fmt(det.get(k), 3) for k in ("precision", "recall", "f1")),
+             _error_pair(se.get("size_definition")), _error_pair(se.get("sieve"))]
+    rows.append([f"all {len(m['photos'])} (pooled)", *(found if grains else []), MISSING, MISSING,
+                 "mean |error| " + _three(p["psd_abs_rel_err"], _pct)])
+    return head, rows
+
+
+def photo_sections(photos: dict[str, dict[str, dict]]) -> dict[str, dict]:
+    """Per photo set: a line on what it is, and per model its table and what its d-values are of."""
+    out: dict[str, dict] = {}
+    for arch, per in photos.items():
+        for s, m in per.items():
+            n = len(m["photos"])
+            sec = out.setdefault(s, {"about": (
+                f"{n} photo{'s' * (n != 1)}; the reference's grain size: {m['size_definition']}; compared at "
+                f"{m['compared_at']}."), "tables": {}})
+            what = (f"grains found, their {m['psd_size_definition']}" if m["finds_grains"] else
+                    f"finds no grains: its own reading, {m['psd_size_definition']} size")
+            sec["tables"][arch] = (*photo_table(m), what)
+    return out
+
+
+def photo_overlays(photos: dict[str, dict[str, dict]], files: dict[str, dict[str, Path]],
+                   fig_dir: Path) -> dict[str, list[tuple[Path, str]]]:
+    """The overlays of the models that find grains, copied into the figures: per photo set, (file, caption)."""
+    out: dict[str, list[tuple[Path, str]]] = {}
+    for arch, per in photos.items():
+        for s, m in per.items():
+            if not m["finds_grains"]:
+                continue
+            for name, r in m["photos"].items():
+                src = files[arch][s].parent / "overlays" / r["overlay"]
+                if not src.is_file():
+                    raise PsdError(f"{files[arch][s]} names the overlay {src}, which is not there")
+                dst = fig_dir / f"photos_{s}_{arch}_{r['overlay']}"
+                copy_file(src, dst)
+                out.setdefault(s, []).append((dst, f"{s}/{name}: {arch} — yellow: the grains it found; blue: the "
+                                                   "reference grains"))
+    return out
 
 
 def fast_path_rule(bench: dict[str, dict]) -> str:
@@ -672,7 +829,14 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
                "(train.pretrained: auto). Expect lower accuracy than with pretrained weights.") if fallback else ""
     speed_head, speed_rows = speed_table(bench)
     fast_head, fast_rows = fast_speed_table(bench)
-    summ = summarize(config, metrics, bench, tables)
+    photos = {a: {s: read_json(f) for s, f in inputs.photos.get(a, {}).items()} for a in archs if a in inputs.photos}
+    for a, per in photos.items():
+        for s, m in per.items():
+            if (m.get("arch"), m.get("photoset")) != (a, s):
+                raise PsdError(f"{inputs.photos[a][s]} holds {m.get('arch')!r} on {m.get('photoset')!r}, not {a!r} on "
+                               f"{s!r}")
+    photo_figs = photo_overlays(photos, inputs.photos, fig_dir)
+    summ = summarize(config, metrics, bench, tables, photos)
     cfg_yaml = yaml.safe_dump(config, sort_keys=False)
     when = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     ceilings = {ds: read_json(f) for ds, f in inputs.ceilings.items()}
@@ -700,6 +864,11 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
     for ds in tested:
         md += [f"### {ds} ({where.get(ds, renderer_of(config, ds))})", "", _md_table(*compact[ds]), "",
                "All figures:", "", _md_table(*acc[ds]), ""]
+    for s, models in photo_sections(photos).items():
+        md += [f"## Photos: {s}", "", models["about"], "", PHOTOS_NOTE, ""]
+        for a, (head, rows, what) in models["tables"].items():
+            md += [f"### {a} ({what})", "", _md_table(head, rows), ""]
+        md += [f"![{c}](figures/{p.name})" for p, c in photo_figs.get(s, [])] + [""]
     if inst_rows:
         md += ["## Instance estimator", "", INSTANCE_NOTE, "", _md_table(*inst_compact), "",
                "All figures:", "", _md_table(inst_head, inst_rows), ""]
@@ -727,6 +896,11 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
               _html_table(*compact[ds]),
               _details(f"All figures on {ds}: R² on re-renders, relative error, pooled, order violations",
                        _html_table(*acc[ds]))]
+    for s, models in photo_sections(photos).items():
+        h += [f"<h2>Photos: {_wrap(s)}</h2>", f"<p>{e(models['about'])}</p>", f"<p class='note'>{e(PHOTOS_NOTE)}</p>"]
+        for a, (head, rows, what) in models["tables"].items():
+            h += [f"<h3>{_wrap(a)} <span class='sub'>({e(what)})</span></h3>", _html_table(head, rows)]
+        h += [_img_tag(p, c) for p, c in photo_figs.get(s, [])]
     if inst_rows:
         h += ["<h2>Instance estimator</h2>", f"<p>{e(INSTANCE_NOTE)}</p>", _html_table(*inst_compact),
               _details("All figures: calibrated and raw R², size errors of fully visible particles per method",

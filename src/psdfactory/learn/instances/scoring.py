@@ -93,6 +93,62 @@ def match_instances(pred_mask: np.ndarray, true_mask: np.ndarray, iou: float = 0
     )
 
 
+def border_ids(mask: np.ndarray) -> np.ndarray:
+    """The ids (>= 1) of the instances with a pixel on the image border, ascending."""
+    m = check_mask(mask)
+    if not m.size:
+        return np.zeros(0, np.int64)
+    edge = np.concatenate([m[0], m[-1], m[:, 0], m[:, -1]])
+    return np.unique(edge[edge > 0])
+
+
+@dataclass(frozen=True)
+class BorderMatch:
+    """Predicted vs reference grains when the reference leaves out the grains the image border
+    cuts (a photo's: their size is unknown). Matches one-to-one at IoU >= a threshold, then:
+
+    - a reference grain touching the border is left out (neither found nor missed), and so is a
+      predicted grain matched to one;
+    - a predicted grain touching the border counts only if it matches a reference grain (a TP);
+      matching none it is left out, not a false positive;
+    - every other predicted grain matching none is a false positive, every other reference grain
+      unmatched a false negative."""
+
+    pred_ids: np.ndarray  # the predicted grains of the true positives
+    true_ids: np.ndarray  # the reference grain each is matched to
+    iou: np.ndarray  # their IoU
+    tp: int
+    fp: int
+    fn: int
+    left_out_pred: int  # predicted grains neither TP nor FP
+    left_out_true: int  # reference grains touching the border
+    precision: float  # tp / (tp + fp) (NaN without either)
+    recall: float  # tp / (tp + fn) (NaN without a scored reference grain)
+    f1: float  # 2 tp / (2 tp + fp + fn) (NaN without any)
+
+
+def match_off_border(pred_mask: np.ndarray, true_mask: np.ndarray, iou: float = 0.5,
+                     pred_on_border: np.ndarray | None = None) -> BorderMatch:
+    """`match_instances`, scored by the border rule of `BorderMatch`. `pred_on_border`: the ids of
+    the predicted grains that touch the border where that was decided on another copy of the
+    mask (the estimator's own, before a resize); default: those touching this mask's border."""
+    m = match_instances(pred_mask, true_mask, iou)
+    pred_present = compact_ids(check_mask(pred_mask))[0]
+    true_present = compact_ids(check_mask(true_mask))[0]
+    pred_edge = border_ids(pred_mask) if pred_on_border is None else np.asarray(pred_on_border, np.int64)
+    true_edge = border_ids(true_mask)
+    scored = ~np.isin(m.true_ids, true_edge)  # matched to a reference grain that is not left out
+    unmatched = pred_present[~np.isin(pred_present, m.pred_ids)]
+    on_edge = np.isin(unmatched, pred_edge)
+    tp, fp = int(scored.sum()), int((~on_edge).sum())
+    n_true = len(true_present) - int(np.isin(true_present, true_edge).sum())
+    nan = float("nan")
+    return BorderMatch(
+        pred_ids=m.pred_ids[scored], true_ids=m.true_ids[scored], iou=m.iou[scored], tp=tp, fp=fp, fn=n_true - tp,
+        left_out_pred=int(on_edge.sum()) + int((~scored).sum()), left_out_true=len(true_present) - n_true,
+        precision=tp / (tp + fp) if tp + fp else nan, recall=tp / n_true if n_true else nan,
+        f1=f1_score(tp, tp + fp, n_true))
+
 
 def fully_visible(true_mask: np.ndarray, z_by_id: np.ndarray) -> np.ndarray:
     """Boolean per mask id (index = id): the particle touches neither the image edge nor any

@@ -1,0 +1,426 @@
+"""Photo sets (config `photos`): labelled photographs as a dataset kind — declared, validated and
+their files checked before any job; the border-aware detection scorer and the size / PSD figures
+against hand-computed cases; the report's photo figures."""
+
+from __future__ import annotations
+
+import copy
+import csv
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import yaml
+
+from psdfactory import PsdError, photoset
+from psdfactory.config import SCHEMA, photo_params, validate
+from psdfactory.learn.instances.scoring import border_ids, match_instances, match_off_border
+
+# ---- a tiny photo set, made in the test ------------------------------------------------------------
+
+
+def rect_mask(shape: tuple[int, int], rects: dict[int, tuple[int, int, int, int]]) -> np.ndarray:
+    """An instance mask: id → (row0, row1, col0, col1), inclusive."""
+    m = np.zeros(shape, np.uint16)
+    for k, (r0, r1, c0, c1) in rects.items():
+        m[r0 : r1 + 1, c0 : c1 + 1] = k
+    return m
+
+
+# the reference grains of photo "a" (40 x 40 px at 0.5 mm/px): A and B inside, C cut by the border
+REF_A = {1: (4, 11, 4, 19), 2: (20, 35, 24, 35), 3: (36, 39, 0, 9)}
+
+
+def make_photo_set(folder: Path, n: int = 2, size: tuple[int, int] = (40, 40), scale: float = 0.5) -> Path:
+    """`n` small photos (a.png, b.png, ...) with 16-bit masks (<stem>_mask.png) and labels.csv
+    (image, mm_per_px, d10/d50/d90 in mm): a photo set as the default config's, in miniature."""
+    from PIL import Image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(3)
+    f = size[0] / 40  # REF_A's grains, scaled to the photo
+    grains = {k: (round(r0 * f), round((r1 + 1) * f) - 1, round(c0 * f), round((c1 + 1) * f) - 1)
+              for k, (r0, r1, c0, c1) in REF_A.items()}
+    rows = []
+    for i in range(n):
+        stem = chr(ord("a") + i)
+        mask = rect_mask(size, grains)
+        img = rng.integers(40, 90, (*size, 3), dtype=np.uint8)
+        img[mask > 0] = rng.integers(150, 230, (int((mask > 0).sum()), 3), dtype=np.uint8)
+        Image.fromarray(img).save(folder / f"{stem}.png")
+        Image.fromarray(mask).save(folder / f"{stem}_mask.png")
+        rows.append({"image": f"{stem}.png", "mm_per_px": scale, "d10_mm": 4.0, "d50_mm": 6.0, "d90_mm": 8.0})
+    with open(folder / "labels.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return folder
+
+
+def photo_spec(folder: Path) -> dict:
+    return {"folder": str(folder), "mm_per_px": {"csv": "labels.csv", "column": "mm_per_px"},
+            "masks": "{stem}_mask.png", "reference": {"csv": "labels.csv"}}
+
+
+def photo_config(folder: Path, over: dict | None = None) -> dict:
+    return {"datasets": {"train": {"n_scenes": 2}}, "photos": {"field": {**photo_spec(folder), **(over or {})}}}
+
+
+# ---- the dataset kind ---------------------------------------------------------------------------------
+
+
+def test_a_photo_set_validates_and_resolves_to_its_files(tmp_path):
+    folder = make_photo_set(tmp_path / "ph")
+    cfg = validate(photo_config(folder))
+    assert cfg["photos"]["field"]["size_definition"] == "ellipse-minor" and cfg["photos"]["field"]["images"] == "*"
+    sets = photoset.check(cfg)
+    s = sets["field"]
+    assert [p.name for p in s.photos] == ["a.png", "b.png"]  # the masks are not photos
+    a = s.photos[0]
+    assert a.mm_per_px == 0.5 and a.size_hw == (40, 40) and a.mask == folder / "a_mask.png"
+    assert a.reference_mm == (4.0, 6.0, 8.0)
+    assert set(s.files()) == {folder / f for f in ("a.png", "b.png", "a_mask.png", "b_mask.png", "labels.csv")}
+    # one number for every photo, no masks, no reference: fine too
+    cfg = validate({"datasets": {"train": {"n_scenes": 2}}, "photos": {"x": {"folder": str(folder), "mm_per_px": 0.3,
+                                                                            "images": "*.png"}}})
+    s = photoset.check(cfg)["x"]
+    assert [p.mm_per_px for p in s.photos] == [0.3] * 4 and not s.has_masks  # without a pattern the masks are photos
+    assert photo_params(cfg, "x")["name"] == "x"
+    # the default config evaluates every model on the real photos
+    from .conftest import REPO
+
+    default = validate(yaml.safe_load((REPO / "config" / "config.yaml").read_text()))
+    assert default["photos"]["real"]["folder"] == "data/photos/real"
+    real = photoset.resolve("real", {**default["photos"]["real"], "folder": str(REPO / "data/photos/real")})
+    assert [(p.name, p.mm_per_px, p.size_hw) for p in real.photos] == [("barton_creek.jpg", 0.288, (1500, 2000)),
+                                                                        ("torrey_pines_beach.jpg", 1.108, (960, 1280))]
+    assert real.photos[0].reference_mm == (5.69, 15.18, 36.14)
+
+
+def _broken(folder: Path, what: str) -> dict:
+    """A photo set's config after one thing about it or its files went wrong."""
+    from PIL import Image
+
+    cfg = photo_config(folder)
+    spec = cfg["photos"]["field"]
+    if what == "no folder":
+        spec["folder"] = str(folder / "nowhere")
+    elif what == "no mask":
+        (folder / "b_mask.png").unlink()
+    elif what == "mask of another size":
+        Image.fromarray(np.zeros((40, 39), np.uint16)).save(folder / "b_mask.png")
+    elif what == "colour mask":
+        Image.fromarray(np.zeros((40, 40, 3), np.uint8)).save(folder / "b_mask.png")
+    elif what == "no scale row":
+        text = (folder / "labels.csv").read_text().splitlines()
+        (folder / "labels.csv").write_text("\n".join(line for line in text if not line.startswith("b.png")) + "\n")
+    elif what == "scale not a number":
+        (folder / "labels.csv").write_text((folder / "labels.csv").read_text().replace("b.png,0.5", "b.png,half"))
+    elif what == "no scale column":
+        spec["mm_per_px"]["column"] = "scale"
+    elif what == "no csv":
+        spec["reference"]["csv"] = "gone.csv"
+    elif what == "unordered reference":
+        (folder / "labels.csv").write_text((folder / "labels.csv").read_text().replace("4.0,6.0,8.0", "9.0,6.0,8.0"))
+    elif what == "two photos, one stem":
+        Image.fromarray(np.zeros((40, 40, 3), np.uint8)).save(folder / "a.jpg")
+    elif what == "not an image":
+        (folder / "b.png").write_bytes(b"not a png")
+    elif what == "no photos":
+        spec["images"] = "*.tif"
+    return cfg
+
+
+@pytest.mark.parametrize("what,says", [
+    ("no folder", "photos.field.folder: "),
+    ("no mask", "photos.field.masks: the photo b.png has no mask b_mask.png"),
+    ("mask of another size", "b_mask.png is 39 x 40 px, its photo b.png 40 x 40 px"),
+    ("colour mask", "is a RGB image, not an instance mask"),
+    ("no scale row", "photos.field.mm_per_px: " + "{labels} has no row for the photo b.png"),
+    ("scale not a number", "image b.png: mm_per_px is 'half', not a number > 0"),
+    ("no scale column", "has no column scale"),
+    ("no csv", "photos.field.reference.csv: {folder}/gone.csv: no such file"),
+    ("unordered reference", "d10 <= d50 <= d90 does not hold (9, 6, 8)"),
+    ("two photos, one stem", "the photos a.jpg and a.png share the name 'a'"),
+    ("not an image", "b.png is not a readable image"),
+    ("no photos", "photos.field: no photos in"),
+])
+def test_a_broken_photo_set_is_refused_in_one_line_naming_the_key_and_file(tmp_path, what, says):
+    folder = make_photo_set(tmp_path / "ph")
+    cfg = validate(_broken(folder, what))  # the schema cannot see files: the check does
+    with pytest.raises(PsdError) as e:
+        photoset.check(cfg)
+    msg = str(e.value)
+    assert says.format(labels=folder / "labels.csv", folder=folder) in msg, msg
+    assert msg.count("\n") == 1  # "invalid photo sets:" and the one problem
+
+
+@pytest.mark.parametrize("change,says", [
+    ({"masks": "mask.png"}, "photos.field.masks: 'mask.png' must hold {stem}"),
+    ({"masks": "masks/{stem}.png"}, "give a file name pattern, not a path"),
+    ({"masks": "{stem}_mask.txt"}, "must end in an image suffix"),
+    ({"mm_per_px": 0}, "photos.field.mm_per_px: 0 is less than or equal to the minimum of 0"),
+    ({"mm_per_px": {"csv": "labels.csv"}}, "'column' is a required property"),
+    ({"size_definition": "sieve"}, "photos.field.size_definition: 'sieve' is not one of"),
+    ({"reference": {"csv": "labels.csv", "definition": "x"}}, "Additional properties are not allowed"),
+    ({"folder": ""}, "photos.field.folder"),
+])
+def test_a_bad_photo_set_is_refused_by_the_schema_or_the_config_check(tmp_path, change, says):
+    with pytest.raises(PsdError, match="invalid config") as e:
+        validate(photo_config(tmp_path, change))
+    assert says in str(e.value), str(e.value)
+
+
+def test_photo_sets_keep_apart_from_the_datasets(tmp_path):
+    cfg = photo_config(tmp_path)
+    cfg["photos"]["train"] = cfg["photos"].pop("field")
+    with pytest.raises(PsdError, match="photos.train: a dataset has this name too"):
+        validate(cfg)
+    with pytest.raises(PsdError, match="photos: 'bad-name' does not match"):
+        validate({"datasets": {"train": {"n_scenes": 2}}, "photos": {"bad-name": photo_spec(tmp_path)}})
+    assert validate({"datasets": {"train": {"n_scenes": 2}}})["photos"] == {}  # none by default
+
+
+def test_check_config_checks_the_photo_files(tmp_path, capsys):
+    from psdfactory.cli import main
+
+    folder = make_photo_set(tmp_path / "ph")
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(photo_config(folder)))
+    assert main(["check-config", str(path)]) == 0
+    assert "1 photo set of 2 photos" in capsys.readouterr().out
+    (folder / "b_mask.png").unlink()
+    assert main(["check-config", str(path)]) == 2
+    assert "photos.field.masks: the photo b.png has no mask b_mask.png" in capsys.readouterr().err
+
+
+def test_the_reference_definitions_are_the_ones_a_grain_is_measured_in():
+    from psdfactory.deploy.photos import MEASURE_OF
+
+    schema = yaml.safe_load(SCHEMA.read_text())
+    assert schema["definitions"]["photo_set"]["properties"]["size_definition"]["enum"] == list(MEASURE_OF)
+
+
+# ---- the scorer: the border rule, by hand ----------------------------------------------------------------
+
+# 10 x 10 px. Reference: 1 and 2 inside, 3 cut by the top border, 4 inside.
+TRUE = {1: (2, 4, 2, 4), 2: (6, 8, 6, 8), 3: (0, 1, 6, 9), 4: (3, 5, 7, 8)}
+# Found: 10 = reference 1 (TP); 11 inside, matching nothing (FP); 12 on the bottom border matching
+# nothing (left out, not an FP); 13 = reference 3 (left out with it); 14 = reference 4 grown to the
+# right border (IoU 6 / 9: a TP though on the border). Reference 2 is missed (FN).
+PRED = {10: (2, 4, 2, 4), 11: (6, 7, 2, 3), 12: (9, 9, 0, 3), 13: (0, 1, 6, 9), 14: (3, 5, 7, 9)}
+
+
+def test_the_border_rule_by_hand():
+    true, pred = rect_mask((10, 10), TRUE), rect_mask((10, 10), PRED)
+    assert border_ids(true).tolist() == [3] and border_ids(pred).tolist() == [12, 13, 14]
+    m = match_off_border(pred, true)
+    assert (m.tp, m.fp, m.fn, m.left_out_pred, m.left_out_true) == (2, 1, 1, 2, 1)
+    assert sorted(zip(m.pred_ids.tolist(), m.true_ids.tolist(), strict=True)) == [(10, 1), (14, 4)]
+    assert m.iou.tolist() == pytest.approx(sorted([1.0, 6 / 9], reverse=True))
+    assert (m.precision, m.recall, m.f1) == pytest.approx((2 / 3, 2 / 3, 2 / 3))
+    # without the rule, 12 would be a false positive and 3 a true grain (13 its match): P 3/5, R 3/4
+    plain = match_instances(pred, true)
+    assert (plain.precision, plain.recall) == pytest.approx((3 / 5, 3 / 4))
+    # the border as another copy of the mask decided it: grain 12 not on it → a false positive after all
+    m = match_off_border(pred, true, pred_on_border=np.array([13, 14]))
+    assert (m.tp, m.fp, m.fn, m.left_out_pred) == (2, 2, 1, 1)
+    # a reference border grain is left out whatever is found there: nothing found, it is no miss
+    m = match_off_border(np.zeros((10, 10), np.uint16), true)
+    assert (m.tp, m.fp, m.fn, m.left_out_true) == (0, 0, 3, 1) and m.recall == 0 and np.isnan(m.precision)
+
+
+# ---- size errors and the PSD, by hand ----------------------------------------------------------------------
+
+# Found at the network's scale (20 x 20 px at 1.0 mm/px, half the photo's 0.5 mm/px): A' = reference A
+# (4 x 8 px, ellipse minor 4 px · 2/√3 = 4.6188 mm, as A's 8 px · 0.5 mm); B' one column wider than B
+# (7 instead of 6 px: 8.0829 mm vs 6.9282 mm, +1/6); D' on the border, matching nothing.
+FOUND = {1: (2, 5, 2, 9), 2: (10, 17, 12, 18), 3: (0, 1, 15, 19)}
+W = 2 / np.sqrt(3)  # a w-px-wide axis-aligned rectangle's ellipse minor axis is w · 2/√3 px
+
+
+def _fake_reading(mask: np.ndarray, mm_per_px: float):
+    from psdfactory.learn.instances.measure import measure_instances
+
+    m = measure_instances(mask, mm_per_px)
+    grains = SimpleNamespace(mask=mask, measurements=m, sizes_mm=m.min_feret_mm)
+    return SimpleNamespace(d_mm=np.array([5.0, 6.5, 9.0]), grains=grains)
+
+
+def test_size_errors_and_psd_by_hand(tmp_path):
+    from psdfactory.deploy.photos import PhotoScorer, read_mask
+
+    folder = make_photo_set(tmp_path / "ph", n=1)
+    s = photoset.check(validate(photo_config(folder)))["field"]
+    photo = s.photos[0]
+    ref = read_mask(photo.mask, photo.size_hw)
+    scorer = PhotoScorer(SimpleNamespace(finds_grains=True), s)
+    r = scorer.add(photo, _fake_reading(rect_mask((20, 20), FOUND), 1.0), ref)
+    d = r["detection"]
+    assert (d["tp"], d["fp"], d["fn"], d["left_out_found"], d["left_out_reference"]) == (2, 0, 0, 1, 1)
+    assert r["n_found"] == 3 and r["n_found_off_border"] == 2 and r["n_reference"] == 2
+    a, b, b_ref = 4 * W, 7 * W, 6 * W  # mm
+    se = r["size_error"]["size_definition"]
+    assert se["n"] == 2 and se["median"] == pytest.approx((b - b_ref) / b_ref / 2)  # of 0 and 1/6
+    assert se["p90"] == pytest.approx(0.9 * (b - b_ref) / b_ref)
+    # the sieve estimate (min Feret: 4 and 7 px) against the reference's ellipse minor axis
+    sieve = r["size_error"]["sieve"]
+    assert sorted([sieve["median"], sieve["p90"]]) == pytest.approx(sorted(
+        [np.median([abs(4 - a) / a, abs(7 - b_ref) / b_ref]),
+         np.percentile([abs(4 - a) / a, abs(7 - b_ref) / b_ref], 90)]))
+    # d10/d50/d90 of the two grains found off the border, 'hazen': a, (a + b) / 2, b
+    assert [r["psd_mm"][n] for n in ("d10", "d50", "d90")] == pytest.approx([a, (a + b) / 2, b])
+    assert [r["psd_rel_err"][n] for n in ("d10", "d50", "d90")] == pytest.approx(
+        [(a - 4) / 4, ((a + b) / 2 - 6) / 6, (b - 8) / 8])
+    pooled = scorer.pooled()
+    assert pooled["detection"]["f1"] == 1.0 and pooled["size_error"]["size_definition"]["n"] == 2
+    assert pooled["psd_abs_rel_err"]["d90"] == pytest.approx(abs(b - 8) / 8)
+    # a model that finds no grains: its own reading against the reference, nothing else
+    cnn = PhotoScorer(SimpleNamespace(finds_grains=False), s).add(photo, SimpleNamespace(d_mm=np.array([5, 6, 10.0])),
+                                                                  ref)
+    assert "detection" not in cnn and cnn["psd_rel_err"]["d90"] == pytest.approx(0.25)
+    # no reference CSV: the reference d-values are the same percentiles of its masks' grains
+    s2 = photoset.resolve("field", {**photo_spec(folder), "reference": None, "size_definition": "ellipse-minor"})
+    r2 = PhotoScorer(SimpleNamespace(finds_grains=True), s2).add(s2.photos[0], _fake_reading(rect_mask(
+        (20, 20), FOUND), 1.0), ref)
+    assert r2["reference_from"] == "mask" and r2["reference_mm"]["d90"] == pytest.approx(b_ref)
+
+
+# ---- the report's photo figures ------------------------------------------------------------------------------
+
+def photo_metrics(arch: str, name: str, finds_grains: bool, f1: float = 0.62) -> dict:
+    """A model's metrics.json on a photo set, as deploy.photos writes it (two photos)."""
+    det = {"iou": 0.5, "tp": 200, "fp": 50, "fn": 100, "left_out_found": 12, "left_out_reference": 0,
+           "precision": 0.8, "recall": 0.667, "f1": f1}
+    err = {"n": 190, "median": 0.081, "p90": 0.32, "median_bias": -0.02}
+    photos = {}
+    for i, photo in enumerate(("barton_creek.jpg", "torrey_pines_beach.jpg")):
+        ref = {"d10": 5.69, "d50": 15.18, "d90": 36.14}
+        psd = {k: v * (1.1 + 0.1 * i) for k, v in ref.items()}
+        r = {"reference_mm": ref, "reference_from": "csv", "psd_mm": psd,
+             "psd_rel_err": {k: 0.1 + 0.1 * i for k in ref}, "reading_mm": psd,
+             "reading_rel_err": {k: 0.1 for k in ref},
+             "network_hw": [737, 983], "mm_per_px": 0.288, "overlay": f"{Path(photo).stem}.png"}
+        if finds_grains:
+            r.update(n_found=320, n_found_off_border=300, n_reference=347, detection=det,
+                     size_error={"size_definition": err, "sieve": err})
+        photos[photo] = r
+    pooled = {"psd_abs_rel_err": {"d10": 0.15, "d50": 0.15, "d90": 0.15}}
+    if finds_grains:
+        pooled.update(detection={**det, "tp": 400}, size_error={"size_definition": err, "sieve": err})
+    return {"arch": arch, "photoset": name, "finds_grains": finds_grains, "size_definition": "ellipse-minor",
+            "psd_size_definition": "ellipse-minor" if finds_grains else "sieve",
+            "reading": {"size_definition": "sieve", "weighting": "number"}, "iou": 0.5,
+            "compared_at": "the photo's resolution", "photos": photos, "pooled": pooled}
+
+
+def write_photo_results(root: Path, arch: str, name: str, finds_grains: bool) -> Path:
+    """eval/<arch>/photos/<name>/metrics.json and its overlays (800 x 625 px, as deploy.photos draws them)."""
+    from PIL import Image
+
+    d = root / "eval" / arch / "photos" / name
+    (d / "overlays").mkdir(parents=True)
+    m = photo_metrics(arch, name, finds_grains)
+    (d / "metrics.json").write_text(json.dumps(m))
+    for r in m["photos"].values():
+        Image.new("RGB", (800, 625), (120, 130, 140)).save(d / "overlays" / r["overlay"])
+    return d / "metrics.json"
+
+
+def test_the_summary_card_gets_a_column_group_per_photo_set_never_ranked_on():
+    from psdfactory.report import photo_table, summarize, summary_table
+
+    from .test_report import SPEED, _bench, _summary_config, _tables
+
+    cfg, metrics = _summary_config(photos=False)
+    bench = {a: _bench(a, v) for a, v in SPEED.items()}
+    photos = {a: {"real": photo_metrics(a, "real", a == "instances", f1=0.62)} for a in metrics}
+    plain = summarize(cfg, metrics, bench, _tables())
+    s = summarize(cfg, metrics, bench, _tables(), photos)
+    assert [c.name for c in s.photo_sets] == ["real"]
+    assert s.photo_sets[0].about == "2 photos vs reference (ellipse-minor)"
+    assert s.photo_cells["instances"]["real"] == ["0.62", "15 % / 15 %"]
+    assert s.photo_cells["resnet18"]["real"] == ["—", "15 % / 15 %"]  # a CNN: no F1, its own reading's error
+    assert s.use == plain.use  # the photos are measured, not ranked on
+    assert "never ranked on" in s.note
+    head, rows = summary_table(s)
+    assert "F1 on real (photos)" in head and rows[0][head.index("F1 on real (photos)")] in ("—", "0.62")
+    head, rows = photo_table(photos["instances"]["real"])
+    assert rows[0][:5] == ["barton_creek.jpg", "300 / 347", "0.800", "0.667", "0.620"]
+    assert rows[0][5] == "8.1 % / 32.0 %" and rows[0][-1] == "+10 % / +10 % / +10 %"
+    assert rows[-1][0] == "all 2 (pooled)" and rows[-1][1] == "600 / 694" and rows[-1][-1].startswith("mean |error|")
+    head, rows = photo_table(photos["resnet18"]["real"])
+    assert head == ["photo", "d10 / d50 / d90 (mm)", "reference (mm)", "error d10 / d50 / d90"]  # no grains
+    assert rows[0] == ["barton_creek.jpg", "6.26 / 16.7 / 39.8", "5.69 / 15.2 / 36.1", "+10 % / +10 % / +10 %"]
+
+
+def test_report_inputs_key_photo_metrics_by_their_folders(tmp_path):
+    from psdfactory.report import photo_inputs
+
+    files = [f"r/eval/{a}/photos/{s}/metrics.json" for a in ("x", "y") for s in ("real", "lab")]
+    got = photo_inputs(["x", "y"], ["real", "lab"], files)
+    assert got["y"]["lab"] == Path("r/eval/y/photos/lab/metrics.json")
+    with pytest.raises(PsdError, match="4 metrics files for 2 models x 3 photo sets"):
+        photo_inputs(["x", "y"], ["real", "lab", "more"], files)
+    with pytest.raises(PsdError, match="is not eval/<arch>/photos/<set>/metrics.json"):
+        photo_inputs(["x", "y"], ["real", "lab"], files[:3] + ["r/eval/z/photos/lab/metrics.json"])
+    with pytest.raises(PsdError, match="once each"):
+        photo_inputs(["x", "y"], ["real", "lab"], files[:3] + files[:1])
+    assert copy.deepcopy(got) == got
+
+
+# ---- the command, with a model that finds no grains ------------------------------------------------------------
+
+CNN_META = {"arch": "resnet18", "input_size": 64, "image_resolution": 64, "mm_per_px": 0.5,
+            "target_stats": {"mean": [4.0, 6.0, 8.0], "std": [0.5, 0.5, 0.5], "part_mean": [1.0, 1.0, 1.0],
+                             "part_std": [0.2, 0.2, 0.2]}}
+
+
+@pytest.fixture(scope="module")
+def cnn_model(tmp_path_factory) -> Path:
+    """An untrained resnet18 reading 64 px at 0.5 mm/px, saved as training saves it."""
+    import torch
+
+    from psdfactory.learn.models import TargetStats, build_model
+    from psdfactory.learn.runtime import save_model
+
+    torch.manual_seed(0)
+    model, _ = build_model("resnet18", TargetStats(**CNN_META["target_stats"]), "none", size=64)
+    path = tmp_path_factory.mktemp("cnn") / "model.pt"
+    save_model(path, model, CNN_META)
+    return path
+
+
+def test_evaluate_photos_writes_metrics_a_row_and_an_overlay_per_photo(tmp_path, cnn_model, capsys):
+    from psdfactory.cli import main
+
+    folder = make_photo_set(tmp_path / "ph", size=(80, 80))  # 80 px at 0.5 mm/px: 80 px at the model's scale
+    cfg = validate(photo_config(folder))
+    params = json.dumps({"photoset": photo_params(cfg, "field"), "precision": "fp32"})
+    out = tmp_path / "eval" / "resnet18" / "photos" / "field"
+    assert main(["evaluate-photos", "--params", params, "--model", str(cnn_model), "--out-dir", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert (m["arch"], m["photoset"], m["finds_grains"], m["psd_size_definition"]) == ("resnet18", "field", False,
+                                                                                      "b-axis")
+    a = m["photos"]["a.png"]
+    assert a["network_hw"] == [80, 80] and a["reference_mm"] == {"d10": 4.0, "d50": 6.0, "d90": 8.0}
+    assert a["psd_rel_err"]["d50"] == pytest.approx((a["psd_mm"]["d50"] - 6.0) / 6.0)
+    assert "detection" not in m["pooled"] and m["pooled"]["psd_abs_rel_err"]["d50"] == pytest.approx(
+        np.mean([abs(r["psd_rel_err"]["d50"]) for r in m["photos"].values()]))
+    rows = list(csv.DictReader(open(out / "photos.csv")))
+    assert [r["image"] for r in rows] == ["a.png", "b.png"] and rows[0]["f1"] == "" and rows[0]["overlay"] == "a.png"
+    from PIL import Image
+
+    with Image.open(out / "overlays" / "b.png") as img:  # the photo under a caption band
+        assert img.size[0] == 80 and img.size[1] > 80
+    # a photo smaller than the model reads, at its scale: one line naming it and the size it needs
+    small = validate(photo_config(folder, {"mm_per_px": 0.25}))
+    params = json.dumps({"photoset": photo_params(small, "field"), "precision": "fp32"})
+    capsys.readouterr()
+    args = ["evaluate-photos", "--params", params, "--model", str(cnn_model), "--out-dir", str(tmp_path / "x")]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "at least 32 mm a side" in err[0], err
+    assert "a.png: at resnet18's scale (0.500 mm/px) this photo is 40 x 40 px, smaller than the 64 px" in err[0]
