@@ -424,3 +424,23 @@ def test_evaluate_photos_writes_metrics_a_row_and_an_overlay_per_photo(tmp_path,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "at least 32 mm a side" in err[0], err
     assert "a.png: at resnet18's scale (0.500 mm/px) this photo is 40 x 40 px, smaller than the 64 px" in err[0]
+
+
+def test_the_workflow_plans_a_job_per_model_and_photo_set_and_refuses_a_broken_one_before_any(tmp_path):
+    from PIL import Image
+
+    from .workflow_helpers import planned_jobs, snakemake, write_config
+
+    folder = make_photo_set(tmp_path / "ph")
+    cfg = {"results": "results", "datasets": {"train": {"n_scenes": 2, "shard_size": 2}},
+           "train": {"architectures": ["resnet18", "instances"]}, "show": {"compare_backends": 0},
+           "photos": {"field": photo_spec(folder)}}
+    path = write_config(tmp_path / "c.yaml", cfg)
+    r = snakemake("-n", "--configfile", str(path), workdir=tmp_path)
+    assert r.returncode == 0, (r.stdout + r.stderr)[-2000:]
+    assert planned_jobs(r)["evaluate_photos"] == 2 and planned_jobs(r)["report"] == 1
+    Image.fromarray(np.zeros((40, 39), np.uint16)).save(folder / "b_mask.png")  # a mask of another size
+    r = snakemake("-n", "--configfile", str(path), workdir=tmp_path)
+    out = r.stdout + r.stderr
+    assert r.returncode != 0 and "photos.field.masks: " in out and "b_mask.png is 39 x 40 px" in out, out[-2000:]
+    assert not (tmp_path / "results").exists()
