@@ -1,6 +1,7 @@
 """``psdfactory evaluate-photos``: a trained model on a photo set (the config's `photos`) —
 labelled photographs, read as `psdfactory predict` reads a photo (at its mm per px, resized to
-the model's scale), scored against the set's reference masks and d10/d50/d90.
+the model's scale, tile by tile where it is large; a calibrated model's correction applied to its
+own reading), scored against the set's reference masks and d10/d50/d90.
 
 What is measured, per photo and pooled over the set:
 
