@@ -449,6 +449,19 @@ class _Parser(argparse.ArgumentParser):
         return ns
 
 
+def _scale_arg(p: argparse.ArgumentParser, then: str) -> None:
+    p.add_argument("--mm-per-px", type=mm_per_px_arg, metavar="MM",
+                   help="scale of the images in mm per pixel (1e-4 to 1e3)" + then)
+
+
+def _threads_arg(p: argparse.ArgumentParser, out_dir: str | None = None) -> None:
+    """--threads, and with `out_dir` (its help) --out-dir: what a PyTorch job takes."""
+    if out_dir:
+        p.add_argument("--out-dir", required=True, metavar="DIR", help=out_dir)
+    p.add_argument("--threads", type=int, default=0, metavar="N",
+                   help="PyTorch's CPU threads, 0 for PyTorch's own choice")
+
+
 def _job_args(p: argparse.ArgumentParser, params_help: str, model_help: str | None = None) -> None:
     """--params, --model (with `model_help`) and --results: what a training-side job takes."""
     p.add_argument("--params", required=True, metavar="JSON", help=params_help)
@@ -489,9 +502,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", required=True, metavar="FILE",
                    help="a model.pt written by training (results/models/<arch>/model.pt), or an .onnx written by "
                         "export (fp32 or int8, with its meta.json beside it)")
-    p.add_argument("--mm-per-px", type=mm_per_px_arg, metavar="MM",
-                   help="scale of the images in mm per pixel (1e-4 to 1e3); they are rescaled to the model's scale "
-                        "(default: the images are at the model's scale, that of its training images)")
+    _scale_arg(p, "; they are rescaled to the model's scale (default: the images are at the model's scale, that "
+                  "of its training images)")
     p.add_argument("--out", metavar="FILE",
                    help="write the predictions to this .csv or .json file (rows go to <out>.partial.csv as they "
                         "come; it becomes <out> when every image is done)")
@@ -558,9 +570,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the reference samples: a CSV with columns image,d10_mm,d50_mm,d90_mm (at least 3 rows); "
                         "image is matched to the IMAGEs by path, else by file name, else by file name without "
                         "suffix, one-to-one")
-    p.add_argument("--mm-per-px", type=mm_per_px_arg, metavar="MM",
-                   help="scale of the images in mm per pixel (1e-4 to 1e3), as for predict; use the same scale "
-                        "when predicting with the calibrated model (default: the model's scale)")
+    _scale_arg(p, ", as for predict; use the same scale when predicting with the calibrated model (default: the "
+                  "model's scale)")
     p.add_argument("--size-definition", choices=SIZE_DEFINITIONS, metavar="NAME",
                    help="what the references' d10/d50/d90 are of: " + ", ".join(SIZE_DEFINITIONS) + " (default: "
                    "the definition the model was trained on); the calibrated model is corrected in it only")
@@ -628,20 +639,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="FILE", help="the ceiling.json to write")
     p.set_defaults(func=cmd_ceiling)
 
-    threads = "PyTorch's CPU threads, 0 for PyTorch's own choice"
     p = workflow("train")
     _job_args(p, "training settings as JSON (see learn.train.TrainParams)")
-    p.add_argument("--out-dir", required=True, metavar="DIR",
-                   help="the model's folder: model.pt, history.csv, TensorBoard logs")
-    p.add_argument("--threads", type=int, default=0, metavar="N", help=threads)
+    _threads_arg(p, "the model's folder: model.pt, history.csv, TensorBoard logs")
     p.set_defaults(func=cmd_train)
 
     p = workflow("evaluate")
     _job_args(p, 'JSON: {"datasets": [...], "precision": "fp32"}', "the model.pt to evaluate")
-    p.add_argument("--out-dir", required=True, metavar="DIR",
-                   help="gets metrics.json, predictions.csv, scatter.png and loss_curve.png")
     p.add_argument("--history", metavar="CSV", help="history.csv to plot the loss curves of")
-    p.add_argument("--threads", type=int, default=0, metavar="N", help=threads)
+    _threads_arg(p, "gets metrics.json, predictions.csv, scatter.png and loss_curve.png")
     p.set_defaults(func=cmd_evaluate)
 
     p = workflow("evaluate-photos", "Each photo is read at its mm per px and resized to the model's scale, as predict "
@@ -650,15 +656,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--params", required=True, metavar="JSON",
                    help='JSON: {"photoset": the config\'s photos.<name> with "name", "precision": "fp32"}')
     p.add_argument("--model", required=True, metavar="FILE", help="the model.pt to evaluate")
-    p.add_argument("--out-dir", required=True, metavar="DIR",
-                   help="gets metrics.json, photos.csv (a row per photo) and overlays/<photo>.png")
-    p.add_argument("--threads", type=int, default=0, metavar="N", help=threads)
+    _threads_arg(p, "gets metrics.json, photos.csv (a row per photo) and overlays/<photo>.png")
     p.set_defaults(func=cmd_evaluate_photos)
 
     p = workflow("benchmark")
     _job_args(p, 'JSON: {"dataset", "batch_size", "seconds", "repeats"}', "the model.pt to time")
     p.add_argument("--out", required=True, metavar="FILE", help="the benchmark's JSON to write")
-    p.add_argument("--threads", type=int, default=0, metavar="N", help=threads)
+    _threads_arg(p)
     p.set_defaults(func=cmd_benchmark)
 
     p = workflow("compare-backends")

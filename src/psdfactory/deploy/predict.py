@@ -23,10 +23,10 @@ from ..io import read_photo, same_file, write_json
 from ..learn.calibration import apply_calibration, calibration_note
 from ..learn.data import to_input
 from ..learn.estimator import Estimator, reading_of
+from ..photoset import IMAGE_SUFFIXES
 from ..psd import TARGETS
 
 logger = logging.getLogger(__name__)
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 
 
 NOT_PHOTOS = {"mask.png"}  # the factory's instance masks, found beside its images in a results folder
