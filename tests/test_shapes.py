@@ -115,3 +115,39 @@ def test_pack_roundtrip():
 def test_unknown_family():
     with pytest.raises(PsdError, match="unknown particle shape"):
         ShapeParams.for_family("cube")
+
+
+def _one_hull(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The hull of one point set, particle by particle (as convex_mesh was before it was batched)."""
+    from scipy.spatial import ConvexHull
+
+    hull = ConvexHull(points)
+    remap = np.full(len(points), -1, dtype=np.int64)
+    remap[hull.vertices] = np.arange(len(hull.vertices))
+    verts, faces = points[hull.vertices], remap[hull.simplices]
+    a, b, c = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
+    flip = np.einsum("ij,ij->i", np.cross(b - a, c - a), (a + b + c) / 3 - verts.mean(axis=0)) < 0
+    faces[flip] = faces[flip][:, ::-1]
+    return verts, faces.astype(np.int32)
+
+
+def test_batched_hulls_and_finishing_equal_one_particle_at_a_time():
+    from psdfactory.scene.shapes import convex_meshes, crushed_rock_points, finish_all
+
+    rng = np.random.default_rng(11)
+    p = ShapeParams.for_family("crushed_rock")
+    points = [crushed_rock_points(rng, p) for _ in range(40)]
+    meshes = convex_meshes(points)
+    for pts, (v, f) in zip(points, meshes, strict=True):
+        rv, rf = _one_hull(pts)
+        np.testing.assert_array_equal(v, rv)
+        np.testing.assert_array_equal(f, rf)
+    sizes = rng.uniform(1, 20, size=len(meshes))
+    dims = np.sort(rng.uniform(0.5, 2.0, size=(len(meshes), 3)), axis=1)[:, ::-1]
+    sieve = rng.uniform(0.5, 1.0, size=len(meshes))
+    for (v, f), s, d, q, part in zip(meshes, sizes, dims, sieve, finish_all(meshes, sizes, dims, sieve), strict=True):
+        scale = s / d[1]
+        vol, centroid = volume_and_centroid(v * scale, f)  # bit for bit the same numbers
+        assert part.volume_mm3 == vol and part.sieve_mm == float(q * scale)
+        np.testing.assert_array_equal(part.vertices, v * scale - centroid)
+        np.testing.assert_array_equal(part.dims_mm, d * scale)

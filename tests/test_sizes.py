@@ -202,3 +202,18 @@ def test_all_silhouettes_at_once_match_one_hull_each(family):
     batched = sizes.footprints(g["vertices"], g["vert_offsets"], q, g["faces"], g["face_offsets"], chunk=16)
     for k in ("feret_min_mm", "feret_max_mm", "ecd_mm"):
         np.testing.assert_allclose(batched[k], hulls[k], rtol=1e-9, err_msg=k)
+
+
+def test_the_grid_through_a_kd_tree_is_the_grid_of_every_cosine():
+    frames, dirs, axes = sizes._grid()
+    every = np.stack([sizes._nearest_direction(frames[:, k], dirs) for k in range(3)], axis=1)
+    np.testing.assert_array_equal(axes, every)
+
+
+def test_grid_widths_in_blocks_equal_one_product():
+    rock = ShapeParams.for_family("crushed_rock")
+    parts = make_particles("crushed_rock", np.full(40, 5.0), np.random.default_rng(6), rock)
+    g = pack(parts)
+    v = sizes.pad_vertices(g["vertices"].astype(float), g["vert_offsets"])
+    p = v.astype(np.float32) @ sizes._grid()[1].T.astype(np.float32)
+    np.testing.assert_array_equal(sizes.grid_widths(v), p.max(axis=1) - p.min(axis=1))
