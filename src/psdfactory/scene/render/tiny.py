@@ -13,7 +13,7 @@ import math
 import numpy as np
 from scipy import ndimage
 
-from ..geometry import CM, Geometry
+from ..geometry import CM, Geometry, gc_paused
 from .look import Look, RenderParams, mm_per_px
 
 
@@ -94,6 +94,11 @@ def tiny_raw(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarr
     """TinyRenderer at `supersample`× → (rgb float32 in [0,1], ids int32, height above the table in mm)."""
     import pybullet as pb
 
+    with gc_paused():
+        return _tiny_raw(pb, spec, geometry, pos_mm, quats, p, look)
+
+
+def _tiny_raw(pb, spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams, look: Look):
     n = len(geometry)
     T = float(spec["table_size"])
     size = p.resolution * p.supersample
