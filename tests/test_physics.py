@@ -98,3 +98,67 @@ def test_mass_ratio_is_capped():
 
     m = particle_masses(np.array([1.0, 1000.0, 8000.0]), 2.0, max_ratio=100.0)
     np.testing.assert_allclose(m, [0.16, 2.0, 16.0])  # 8000 mm³ × 2 g/cm³ = 16 g; floor 0.16 g
+
+
+def test_matrix_to_quaternions_inverts_quat_to_matrix():
+    from psdfactory.scene.physics import matrix_to_quaternions
+
+    q = random_quaternions(np.random.default_rng(3), 200)
+    back = matrix_to_quaternions(quat_to_matrix(q))
+    np.testing.assert_allclose(np.abs((back * q).sum(axis=1)), 1.0, atol=1e-12)  # q and -q: one rotation
+
+
+def test_resting_rotations_lie_on_a_face_their_centre_stands_over():
+    from scipy.spatial import Delaunay
+
+    from psdfactory.scene.physics import resting_rotations
+
+    _, _, geo, _ = _scene(count=[60, 60])
+    turned = resting_rotations(geo, quat_to_matrix(random_quaternions(np.random.default_rng(0), len(geo))))
+    for i in range(len(geo)):
+        v = geo.mesh(i)[0] @ turned[i].T
+        foot = v[v[:, 2] < v[:, 2].min() + 1e-9 * np.abs(v).max()][:, :2]
+        assert len(foot) >= 3, f"particle {i} does not lie on a face"
+        assert Delaunay(foot).find_simplex([0.0, 0.0]) >= 0, f"particle {i} would tip over"  # its centre is at 0
+
+
+def test_resting_spawn_starts_near_the_drop_spots_and_above_what_is_below():
+    from psdfactory.scene.physics import SPAWN_SHIFT_MM, resting_rotations, resting_spawn
+
+    _, _, geo, xy = _scene(count=[80, 80])
+    rots = resting_rotations(geo, quat_to_matrix(random_quaternions(np.random.default_rng(1), len(geo))))
+    start, z = resting_spawn(geo, xy, rots, 60.0, gap=0.5)
+    assert np.abs(start - xy).max() <= SPAWN_SHIFT_MM + 1e-9
+    posed = [geo.mesh(i)[0] @ rots[i].T + [*start[i], z[i]] for i in range(len(geo))]
+    assert min(v[:, 2].min() for v in posed) >= 0.5 - 1e-9  # above the floor by the gap
+    assert max(np.abs(v[:, :2]).max() for v in posed) <= 30 + 1e-9  # on the table
+    # no particle starts inside another (checked with the hulls' face planes at the other's vertices)
+    from psdfactory.scene.shapes import convex_mesh
+
+    planes = []
+    for v in posed:
+        hv, hf = convex_mesh(v)
+        n = np.cross(hv[hf[:, 1]] - hv[hf[:, 0]], hv[hf[:, 2]] - hv[hf[:, 0]])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        planes.append((n, np.einsum("ij,ij->i", n, hv[hf[:, 0]])))
+    for i, (n, d) in enumerate(planes):
+        for j, v in enumerate(posed):
+            if i != j:
+                depth = (d[None, :] - v @ n.T).min(axis=1)  # > 0: the vertex lies inside hull i
+                assert depth.max() < 0.05, f"particle {j} starts {depth.max():.2f} mm inside particle {i}"
+
+
+@pytest.mark.slow
+def test_the_legacy_settle_is_still_there_and_deterministic():
+    cfg, spec, geo, xy = _scene()
+    params = psd_config.simulate_params(cfg)
+    assert params["settle"] == "fast"  # the default
+    params["settle"] = "legacy"
+    p = PhysicsParams.from_dict(params)
+    a = simulate(geo, xy, 60.0, spec["entropy"], p)
+    b = simulate(geo, xy, 60.0, spec["entropy"], p)
+    np.testing.assert_array_equal(a.positions_mm, b.positions_mm)
+    assert a.quality["settled_fraction"] >= 0.95 and a.quality["worst_penetration_mm"] < 1.0
+    params["settle"] = "fastest"
+    with pytest.raises(PsdError, match="physics.settle"):
+        PhysicsParams.from_dict(params)

@@ -2,6 +2,20 @@
 
 Internally Bullet works in centimetres (gravity -981 cm/s²): measured to behave best for
 millimetre-to-centimetre particles. Everything that leaves this module is in mm.
+
+Two settles (``physics.settle``), both freezing each particle once it is still and stopping when
+``stop_frozen_fraction`` of them are:
+- ``fast`` (default): each particle starts near where it will rest. From its random orientation
+  it is tipped, quasi-statically, onto the face it would come to rest on if dropped on the bare
+  floor (``resting_rotations``), then lowered onto a height field of the particles placed before
+  it, at the lowest spot within ``SPAWN_SHIFT_MM`` of its drop spot (``resting_spawn``): falls of
+  ~1 mm instead of tens of mm, ~30 % fewer steps. A particle freezes once every point of it moves
+  slower than ``freeze_speed_mm_s`` (``|v| + |ω|·r``, r its circumradius) at ``freeze_checks``
+  checks in a row; the walls collide only with particles near them.
+- ``legacy``: the settle before it, kept so that old datasets can be made again pose for pose and
+  compared: random orientations stacked in columns over the drop spots (``spawn_heights``), a
+  particle frozen when its speed and spin are both below ``freeze_speed_mm_s`` and
+  ``freeze_spin_rad_s``.
 """
 
 from __future__ import annotations
@@ -16,11 +30,15 @@ import numpy as np
 from .. import PsdError
 from ..config import config_fields
 from ..seeding import rng_for
-from .geometry import CM, Geometry, quat_to_matrix
+from .geometry import CM, Geometry, gc_paused, quat_to_matrix
 
 logger = logging.getLogger(__name__)
-GROUP_ACTIVE, GROUP_FROZEN, GROUP_WALLS = 1, 2, 4
-GROUP_ALL = GROUP_ACTIVE | GROUP_FROZEN | GROUP_WALLS
+GROUP_ACTIVE, GROUP_FROZEN, GROUP_WALLS, GROUP_INNER, GROUP_FLOOR = 1, 2, 4, 8, 16
+GROUP_ALL = GROUP_ACTIVE | GROUP_FROZEN | GROUP_WALLS | GROUP_INNER | GROUP_FLOOR
+SETTLES = ("fast", "legacy")
+SPAWN_CELL_MM = 1.0  # the fast settle's height field
+SPAWN_SHIFT_MM = 3.0  # how far from its drop spot a particle may start, looking for a low spot
+WALL_MARGIN_MM = 30.0  # particles farther than this (plus their radius) from every wall skip the walls
 
 
 # The config's `physics` section (defaults: the schema's, config.schema.yaml).
@@ -37,6 +55,7 @@ class QualityBounds:
 
 @dataclass(frozen=True)
 class PhysicsParams:
+    settle: str  # "fast" or "legacy" (module docstring)
     timestep_s: float
     solver_iterations: int
     max_time_s: float
@@ -62,6 +81,8 @@ class PhysicsParams:
         """From the validated `physics` slice (config.simulate_params)."""
         kw = config_fields(cls, d, "physics")
         kw["quality"] = QualityBounds(**config_fields(QualityBounds, kw["quality"], "physics.quality"))
+        if kw["settle"] not in SETTLES:
+            raise PsdError(f"physics.settle: {kw['settle']!r} unknown; one of {', '.join(SETTLES)}")
         return cls(**kw)
 
 
@@ -107,6 +128,199 @@ def spawn_heights(
         z[i] = col[sl].max() - lo + gap
         col[sl] = z[i] + hi
     return z
+
+
+def matrix_to_quaternions(r: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices → (N, 4) unit quaternions x, y, z, w (the inverse of
+    ``quat_to_matrix``; each from its largest component, so that none divides by a small one)."""
+    m00, m11, m22 = r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]
+    cands = np.stack([
+        np.stack([1 + m00 - m11 - m22, r[:, 0, 1] + r[:, 1, 0], r[:, 0, 2] + r[:, 2, 0], r[:, 2, 1] - r[:, 1, 2]], -1),
+        np.stack([r[:, 0, 1] + r[:, 1, 0], 1 - m00 + m11 - m22, r[:, 1, 2] + r[:, 2, 1], r[:, 0, 2] - r[:, 2, 0]], -1),
+        np.stack([r[:, 0, 2] + r[:, 2, 0], r[:, 1, 2] + r[:, 2, 1], 1 - m00 - m11 + m22, r[:, 1, 0] - r[:, 0, 1]], -1),
+        np.stack([r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1], 1 + m00 + m11 + m22], -1),
+    ], 1)  # (N, 4 candidates, 4): candidate k is 4·q_k·q
+    diag = np.stack([1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22, 1 + m00 + m11 + m22], -1)
+    q = cands[np.arange(len(r)), diag.argmax(axis=-1)]
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def _faces(geometry: Geometry) -> tuple:
+    """Every particle's faces at once: vertices (V, 3), faces as global vertex indices (F, 3),
+    outward unit normals (F, 3), distances of the face planes from the particle's centre (F,),
+    the face across each edge (F, 3; edge k is the one opposite corner k) and each face's particle."""
+    v = geometry.vertices.astype(np.float64)
+    nf = np.diff(geometry.face_offsets)
+    pid = np.repeat(np.arange(len(nf)), nf)
+    f = geometry.faces.astype(np.int64) + geometry.vert_offsets[:-1][pid, None]
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    normal = np.cross(b - a, c - a)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    dist = np.einsum("ij,ij->i", normal, a)
+    edges = np.sort(np.stack([f[:, [1, 2]], f[:, [2, 0]], f[:, [0, 1]]], axis=1), axis=2).reshape(-1, 2)
+    order = np.lexsort((edges[:, 1], edges[:, 0]))
+    e = edges[order]
+    pair = np.flatnonzero((e[1:] == e[:-1]).all(axis=1))  # a closed mesh: every edge twice
+    across = np.full(len(edges), -1)
+    across[order[pair]], across[order[pair + 1]] = order[pair + 1] // 3, order[pair] // 3
+    return v, f, normal, dist, across.reshape(-1, 3), pid
+
+
+def resting_rotations(geometry: Geometry, rots: np.ndarray, faces: tuple | None = None) -> np.ndarray:
+    """Each particle turned from its orientation `rots` onto the face it comes to rest on when
+    dropped on a flat floor, quasi-statically: the face its centre's downward ray leaves through,
+    then over the edge its centre's projection lies beyond while that lowers the centre (a face
+    is stable when the projection lies on it). Turned the shortest way, so its heading stays."""
+    v, f, normal, dist, across, pid = _faces(geometry) if faces is None else faces
+    n = len(rots)
+    if n == 0:
+        return rots
+    down = -rots[:, 2, :]  # the world's -z in each particle's own frame
+    score = np.einsum("ij,ij->i", normal, down[pid]) / np.maximum(dist, 1e-12)
+    order = np.lexsort((-score, pid))
+    face = order[np.searchsorted(pid[order], np.arange(n))]  # the exit face of the downward ray
+    # barycentric coordinates of the centre's projection on each face's plane
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    e0, e1, e2 = b - a, c - a, dist[:, None] * normal - a
+    d00, d01, d11 = (e0 * e0).sum(1), (e0 * e1).sum(1), (e1 * e1).sum(1)
+    d20, d21 = (e2 * e0).sum(1), (e2 * e1).sum(1)
+    den = np.maximum(d00 * d11 - d01 * d01, 1e-300)
+    lb, lc = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+    bary = np.stack([1 - lb - lc, lb, lc], axis=1)
+    k = bary.argmin(axis=1)
+    nxt = across[np.arange(len(f)), k]
+    stays = (bary.min(axis=1) >= 0) | (nxt < 0) | (dist[np.maximum(nxt, 0)] >= dist * (1 - 1e-9))
+    nxt = np.where(stays, np.arange(len(f)), nxt)
+    for _ in range(len(f)):  # each tip lowers the centre: it ends
+        new = nxt[face]
+        if np.array_equal(new, face):
+            break
+        face = new
+    w = np.einsum("nij,nj->ni", rots, normal[face])  # the resting face's normal, in the world
+    return _shortest_turns(w, np.array([0.0, 0.0, -1.0])) @ rots
+
+
+def _shortest_turns(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N, 3, 3): the smallest rotation taking each unit vector a to b."""
+    vx = np.zeros((len(a), 3, 3))
+    cr = np.cross(a, b)
+    vx[:, 0, 1], vx[:, 0, 2], vx[:, 1, 2] = -cr[:, 2], cr[:, 1], -cr[:, 0]
+    vx[:, 1, 0], vx[:, 2, 0], vx[:, 2, 1] = cr[:, 2], -cr[:, 1], cr[:, 0]
+    cos = a @ b
+    turn = np.eye(3) + vx + vx @ vx / np.maximum(1 + cos, 1e-12)[:, None, None]
+    turn[cos < -1 + 1e-9] = np.diag([1.0, -1.0, -1.0])  # upside down: half a turn about x
+    return turn
+
+
+def resting_spawn(geometry: Geometry, xy: np.ndarray, rots: np.ndarray, table_size: float, gap: float,
+                  cell: float = SPAWN_CELL_MM, shift: float = SPAWN_SHIFT_MM,
+                  faces: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Start spots (N, 2) and heights (N,) in mm: each particle in turn, as turned by `rots`,
+    lowered onto a height field (cells of `cell` mm) of those placed before it, at the lowest
+    spot within `shift` mm of its drop spot, `gap` above what it would touch.
+
+    Each particle's underside and top over the cells (``_surfaces``) are widened by a cell, so that
+    what a cell holds is about never lower (top) or higher (underside) than the particle there."""
+    v, f, normal, dist, _, pid = _faces(geometry) if faces is None else faces
+    n = len(rots)
+    vo = geometry.vert_offsets
+    nv = np.diff(vo)
+    vr = np.einsum("vij,vj->vi", rots[np.repeat(np.arange(n), nv)], v)  # turned, about each centre
+    nr = np.einsum("fij,fj->fi", rots[pid], normal)
+    half = table_size / 2
+    lo = np.minimum.reduceat(vr[:, :2], vo[:-1]) + xy
+    hi = np.maximum.reduceat(vr[:, :2], vo[:-1]) + xy
+    c0 = np.floor((lo + half) / cell).astype(int) - 1  # first cell (x, y) of each particle's window
+    ext = np.floor((hi + half) / cell).astype(int) + 2 - c0  # window size in cells
+    zlow = np.minimum.reduceat(vr[:, 2], vo[:-1])
+    radius = np.sqrt(np.maximum.reduceat((vr[:, :2] ** 2).sum(axis=1), vo[:-1]))
+    tops, bottoms = _surfaces(vr, f, nr, dist, pid, np.repeat(np.arange(n), nv), xy, c0, ext, cell, half)
+    k = int(round(shift / cell))
+    pad = k + 2
+    size = int(math.ceil(table_size / cell)) + 2 + 2 * pad
+    height = np.zeros((size, size))
+    moves = np.arange(-k, k + 1) * cell
+    room = (half - radius)[:, None]  # a start keeps the particle on the table
+    ok_x = np.abs(xy[:, 0, None] + moves) <= room
+    ok_y = np.abs(xy[:, 1, None] + moves) <= room
+    ok_x[:, k] |= ~ok_x.any(axis=1)  # (the drop spot itself, should no move keep it on)
+    ok_y[:, k] |= ~ok_y.any(axis=1)
+    nearer = 1e-9 * (moves[:, None] ** 2 + moves[None, :] ** 2)  # ties: the nearer spot
+    z, start = np.empty(n), np.array(xy, dtype=float)
+    s0, s1 = height.strides
+    for i in range(n):
+        a0, b0 = c0[i] + pad - k
+        ex, ey = ext[i]
+        near = height[a0:a0 + ex + 2 * k, b0:b0 + ey + 2 * k]
+        windows = np.lib.stride_tricks.as_strided(near, (2 * k + 1, 2 * k + 1, ex, ey), (s0, s1, s0, s1))
+        lift = (windows - bottoms[i]).max(axis=(2, 3))  # how high it starts at each spot
+        cost = np.where(ok_x[i][:, None] & ok_y[i][None, :], lift, np.inf) + nearer
+        ja, jb = divmod(int(cost.argmin()), 2 * k + 1)
+        start[i] += (moves[ja], moves[jb])
+        z[i] = max(float(lift[ja, jb]), -zlow[i]) + gap
+        under = height[a0 + ja:a0 + ja + ex, b0 + jb:b0 + jb + ey]
+        np.maximum(under, z[i] + tops[i], out=under)
+    return start, z
+
+
+def _surfaces(vr: np.ndarray, f: np.ndarray, nr: np.ndarray, dist: np.ndarray, pid: np.ndarray, vpid: np.ndarray,
+              xy: np.ndarray, c0: np.ndarray, ext: np.ndarray, cell: float, half: float) -> tuple[list, list]:
+    """Each particle's top and underside over its window of cells (``resting_spawn``), relative to
+    its centre: at each cell centre the height of the face above (below) it, a face's plane
+    evaluated only over the cells its shadow covers, so the work grows with the area, not with
+    area × faces; each vertex also raises (lowers) its own cell; -inf / inf off the particle;
+    then each cell takes the extreme of its 3 × 3 neighbourhood."""
+    n = len(xy)
+    size = ext[:, 0] * ext[:, 1]
+    off = np.concatenate([[0], np.cumsum(size)])
+    top, bot = np.full(off[-1], -np.inf), np.full(off[-1], np.inf)
+    wx = (c0[:, 0] + 0.5) * cell - half - xy[:, 0]  # centre of each window's first cell, particle frame
+    wy = (c0[:, 1] + 0.5) * cell - half - xy[:, 1]
+    a, b, c = vr[f[:, 0]], vr[f[:, 1]], vr[f[:, 2]]
+    for sign, out, pick in ((1.0, top, np.maximum), (-1.0, bot, np.minimum)):
+        fs = np.flatnonzero(sign * nr[:, 2] > 1e-9)  # faces turned up (down)
+        p = pid[fs]
+        tri = np.stack([a[fs, :2], b[fs, :2], c[fs, :2]], axis=1)  # (k, 3, 2)
+        i0 = np.ceil((tri[..., 0].min(1) - wx[p]) / cell).astype(int)  # the cells whose centres its shadow may hold
+        i1 = np.floor((tri[..., 0].max(1) - wx[p]) / cell).astype(int)
+        j0 = np.ceil((tri[..., 1].min(1) - wy[p]) / cell).astype(int)
+        j1 = np.floor((tri[..., 1].max(1) - wy[p]) / cell).astype(int)
+        ni, nj = np.maximum(i1 - i0 + 1, 0), np.maximum(j1 - j0 + 1, 0)
+        cnt = ni * nj
+        e = np.repeat(np.arange(len(fs)), cnt)  # one row per (face, cell)
+        k = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        ci, cj = i0[e] + k // nj[e], j0[e] + k % nj[e]
+        pe = p[e]
+        x, y = wx[pe] + ci * cell, wy[pe] + cj * cell
+        t = tri[e]
+        d1 = (t[:, 1, 0] - t[:, 0, 0]) * (y - t[:, 0, 1]) - (t[:, 1, 1] - t[:, 0, 1]) * (x - t[:, 0, 0])
+        d2 = (t[:, 2, 0] - t[:, 1, 0]) * (y - t[:, 1, 1]) - (t[:, 2, 1] - t[:, 1, 1]) * (x - t[:, 1, 0])
+        d3 = (t[:, 0, 0] - t[:, 2, 0]) * (y - t[:, 2, 1]) - (t[:, 0, 1] - t[:, 2, 1]) * (x - t[:, 2, 0])
+        eps = 1e-9 * cell * cell
+        inside = ((d1 >= -eps) & (d2 >= -eps) & (d3 >= -eps)) | ((d1 <= eps) & (d2 <= eps) & (d3 <= eps))
+        g = fs[e[inside]]
+        z = (dist[g] - nr[g, 0] * x[inside] - nr[g, 1] * y[inside]) / nr[g, 2]
+        pick.at(out, off[pe[inside]] + ci[inside] * ext[pe[inside], 1] + cj[inside], z)
+    # every vertex in its own cell (a peak between cell centres)
+    vi = np.floor((vr[:, 0] - wx[vpid]) / cell + 0.5).astype(int)
+    vj = np.floor((vr[:, 1] - wy[vpid]) / cell + 0.5).astype(int)
+    at = off[vpid] + vi * ext[vpid, 1] + vj
+    np.maximum.at(top, at, vr[:, 2])
+    np.minimum.at(bot, at, vr[:, 2])
+    # each cell takes the extreme of its 3 × 3 neighbourhood within its particle's window
+    cp = np.repeat(np.arange(n), size)
+    local = np.arange(off[-1]) - off[cp]
+    ci, cj, ex, ey = local // ext[cp, 1], local % ext[cp, 1], ext[cp, 0], ext[cp, 1]
+    wide_top, wide_bot = top.copy(), bot.copy()
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            ok = (ci + di >= 0) & (ci + di < ex) & (cj + dj >= 0) & (cj + dj < ey)
+            src = np.where(ok, np.arange(off[-1]) + di * ey + dj, 0)
+            np.maximum(wide_top, np.where(ok, top[src], -np.inf), out=wide_top)
+            np.minimum(wide_bot, np.where(ok, bot[src], np.inf), out=wide_bot)
+    tops = [wide_top[off[i]:off[i + 1]].reshape(ext[i]) for i in range(n)]
+    bottoms = [wide_bot[off[i]:off[i + 1]].reshape(ext[i]) for i in range(n)]
+    return tops, bottoms
 
 
 def particle_masses(volume_mm3: np.ndarray, density_g_cm3: float, max_ratio: float) -> np.ndarray:
@@ -167,10 +381,29 @@ def _run_once(geometry: Geometry, xy: np.ndarray, table_size: float, p: PhysicsP
               rng: np.random.Generator) -> tuple:
     import pybullet as pb
 
+    with gc_paused():  # ~10^4 small lists handed to pybullet; collecting them found nothing
+        return _settle(pb, geometry, xy, table_size, p, rng)
+
+
+def _settle(pb, geometry: Geometry, xy: np.ndarray, table_size: float, p: PhysicsParams,
+            rng: np.random.Generator) -> tuple:
     n = len(geometry)
+    fast = p.settle == "fast"
     quats = random_quaternions(rng, n)
     rots = quat_to_matrix(quats)
-    z0 = spawn_heights(geometry, xy, rots, table_size, p.spawn_gap_mm)
+    if fast:
+        faces = _faces(geometry)
+        rots = resting_rotations(geometry, rots, faces)
+        quats = matrix_to_quaternions(rots)
+        xy, z0 = resting_spawn(geometry, xy, rots, table_size, p.spawn_gap_mm, faces=faces)
+    else:
+        z0 = spawn_heights(geometry, xy, rots, table_size, p.spawn_gap_mm)
+    radius = circumradii_cm(geometry)
+    half_mm = table_size / 2
+    # the fast settle: particles far from every wall skip the walls (a plane pairs with every
+    # particle in the broadphase, ~15 % of a step), until they come near one
+    near_wall_mm = half_mm - WALL_MARGIN_MM - radius / CM
+    inner = (np.abs(xy).max(axis=1) < near_wall_mm) if fast else np.zeros(n, dtype=bool)
 
     cid = pb.connect(pb.DIRECT)
     try:
@@ -196,7 +429,10 @@ def _run_once(geometry: Geometry, xy: np.ndarray, table_size: float, p: PhysicsP
             shape = pb.createCollisionShape(pb.GEOM_PLANE, planeNormal=normal, physicsClientId=cid)
             body = pb.createMultiBody(0, shape, basePosition=origin, physicsClientId=cid)
             pb.changeDynamics(body, -1, lateralFriction=p.friction, restitution=p.restitution, physicsClientId=cid)
-            pb.setCollisionFilterGroupMask(body, -1, GROUP_WALLS, GROUP_ACTIVE, physicsClientId=cid)
+            if fast and normal[2]:
+                pb.setCollisionFilterGroupMask(body, -1, GROUP_FLOOR, GROUP_ACTIVE | GROUP_INNER, physicsClientId=cid)
+            else:
+                pb.setCollisionFilterGroupMask(body, -1, GROUP_WALLS, GROUP_ACTIVE, physicsClientId=cid)
 
         masses = particle_masses(geometry.volume_mm3, p.density_g_cm3, p.max_mass_ratio)
         bodies = []
@@ -220,13 +456,17 @@ def _run_once(geometry: Geometry, xy: np.ndarray, table_size: float, p: PhysicsP
                 collisionMargin=p.collision_margin_mm * CM,
                 physicsClientId=cid,
             )
-            pb.setCollisionFilterGroupMask(body, -1, GROUP_ACTIVE, GROUP_ALL, physicsClientId=cid)
+            if inner[i]:
+                pb.setCollisionFilterGroupMask(body, -1, GROUP_INNER, GROUP_ALL & ~GROUP_WALLS, physicsClientId=cid)
+            else:
+                pb.setCollisionFilterGroupMask(body, -1, GROUP_ACTIVE, GROUP_ALL, physicsClientId=cid)
             bodies.append(body)
 
         slow_count = np.zeros(n, dtype=int)
         frozen = np.zeros(n, dtype=bool)
         max_steps = int(round(p.max_time_s / p.timestep_s))
         v_thr = p.freeze_speed_mm_s * CM
+        reach = (near_wall_mm * CM).tolist()
         step = 0
         t0 = time.perf_counter()
         while step < max_steps:
@@ -235,7 +475,15 @@ def _run_once(geometry: Geometry, xy: np.ndarray, table_size: float, p: PhysicsP
             step += p.check_every_steps
             for i in np.flatnonzero(~frozen):
                 lin, ang = pb.getBaseVelocity(bodies[i], physicsClientId=cid)
-                slow = math.hypot(*lin) < v_thr and math.hypot(*ang) < p.freeze_spin_rad_s
+                if fast:  # every point of the particle slower than freeze_speed
+                    slow = math.hypot(*lin) + math.hypot(*ang) * radius[i] < v_thr
+                    if inner[i]:
+                        at, _ = pb.getBasePositionAndOrientation(bodies[i], physicsClientId=cid)
+                        if max(abs(at[0]), abs(at[1])) >= reach[i]:  # come near a wall: the walls again
+                            inner[i] = False
+                            pb.setCollisionFilterGroupMask(bodies[i], -1, GROUP_ACTIVE, GROUP_ALL, physicsClientId=cid)
+                else:
+                    slow = math.hypot(*lin) < v_thr and math.hypot(*ang) < p.freeze_spin_rad_s
                 slow_count[i] = slow_count[i] + 1 if slow else 0
                 if slow_count[i] >= p.freeze_checks:
                     # freeze: a static body costs nothing in the solver and stops jitter
@@ -244,7 +492,8 @@ def _run_once(geometry: Geometry, xy: np.ndarray, table_size: float, p: PhysicsP
                     # frozen particles still collide with moving ones, but no longer with each
                     # other or the walls: the broadphase drops those pairs (measured: step cost
                     # falls with the number of moving particles instead of staying high)
-                    pb.setCollisionFilterGroupMask(bodies[i], -1, GROUP_FROZEN, GROUP_ACTIVE, physicsClientId=cid)
+                    pb.setCollisionFilterGroupMask(bodies[i], -1, GROUP_FROZEN, GROUP_ACTIVE | GROUP_INNER,
+                                                   physicsClientId=cid)
                     frozen[i] = True
             if frozen.mean() >= p.stop_frozen_fraction:
                 break
@@ -263,6 +512,12 @@ def _run_once(geometry: Geometry, xy: np.ndarray, table_size: float, p: PhysicsP
         return pos / CM, quat, frozen, min_contact, step, sim_time
     finally:
         pb.disconnect(physicsClientId=cid)
+
+
+def circumradii_cm(geometry: Geometry) -> np.ndarray:
+    """Each particle's largest vertex distance from its centre, in pybullet's unit."""
+    r = np.linalg.norm(geometry.vertices.astype(np.float64), axis=1)
+    return np.maximum.reduceat(r, geometry.vert_offsets[:-1]) * CM if len(geometry) else np.zeros(0)
 
 
 def simulate(geometry: Geometry, xy: np.ndarray, table_size: float, entropy: list[int], p: PhysicsParams) -> SimResult:
