@@ -239,6 +239,7 @@ def resting_spawn(geometry: Geometry, xy: np.ndarray, rots: np.ndarray, table_si
     radius = np.sqrt(np.maximum.reduceat((vr[:, :2] ** 2).sum(axis=1), vo[:-1]))
     tops, bottoms = _surfaces(vr, f, nr, dist, pid, np.repeat(np.arange(n), nv), xy, c0, ext, cell, half)
     k = int(round(shift / cell))
+    w = 2 * k + 1
     pad = k + 2
     size = int(math.ceil(table_size / cell)) + 2 + 2 * pad
     height = np.zeros((size, size))
@@ -248,21 +249,24 @@ def resting_spawn(geometry: Geometry, xy: np.ndarray, rots: np.ndarray, table_si
     ok_y = np.abs(xy[:, 1, None] + moves) <= room
     ok_x[:, k] |= ~ok_x.any(axis=1)  # (the drop spot itself, should no move keep it on)
     ok_y[:, k] |= ~ok_y.any(axis=1)
-    nearer = 1e-9 * (moves[:, None] ** 2 + moves[None, :] ** 2)  # ties: the nearer spot
-    z, start = np.empty(n), np.array(xy, dtype=float)
-    s0, s1 = height.strides
+    # what a move costs beside the height: nothing (1e-9 mm² per mm² moved: ties go to the
+    # nearer spot), or everything where it would leave the table
+    nearer = 1e-9 * (moves[:, None] ** 2 + moves[None, :] ** 2)
+    penalty = np.where(ok_x[:, :, None] & ok_y[:, None, :], nearer, np.inf)
+    z, move = np.empty(n), np.empty((n, 2), dtype=int)
+    item = height.itemsize
     for i in range(n):
         a0, b0 = c0[i] + pad - k
         ex, ey = ext[i]
-        near = height[a0:a0 + ex + 2 * k, b0:b0 + ey + 2 * k]
-        windows = np.lib.stride_tricks.as_strided(near, (2 * k + 1, 2 * k + 1, ex, ey), (s0, s1, s0, s1))
-        lift = (windows - bottoms[i]).max(axis=(2, 3))  # how high it starts at each spot
-        cost = np.where(ok_x[i][:, None] & ok_y[i][None, :], lift, np.inf) + nearer
-        ja, jb = divmod(int(cost.argmin()), 2 * k + 1)
-        start[i] += (moves[ja], moves[jb])
+        windows = np.ndarray((w, w, ex, ey), height.dtype, height, (a0 * size + b0) * item,
+                             (size * item, item, size * item, item))  # every start within reach
+        lift = (windows - bottoms[i]).max(axis=(2, 3))  # how high it starts at each
+        ja, jb = divmod(int((lift + penalty[i]).argmin()), w)
+        move[i] = ja, jb
         z[i] = max(float(lift[ja, jb]), -zlow[i]) + gap
         under = height[a0 + ja:a0 + ja + ex, b0 + jb:b0 + jb + ey]
         np.maximum(under, z[i] + tops[i], out=under)
+    start = xy + moves[move]
     return start, z
 
 
