@@ -23,6 +23,7 @@ from psdfactory.scene.physics import PhysicsParams, QualityBounds
 from psdfactory.scene.render.cycles import CyclesParams
 from psdfactory.scene.render.distractors import DistractorParams
 from psdfactory.scene.render.look import RenderParams
+from psdfactory.scene.render.markings import MarkingParams
 from psdfactory.scene.sampling import SampleParams
 from psdfactory.scene.shapes import ShapeParams
 
@@ -93,6 +94,7 @@ CASES = [
     (RenderParams, ("render",), (), {}, {}),
     (CyclesParams, ("render", "cycles"), (), {}, {}),
     (DistractorParams, ("render", "distractors"), (), {}, {}),
+    (MarkingParams, ("render", "markings"), (), {}, {}),
     (LabelParams, ("labels",), (), {}, {}),
     (TrainParams, ("train",), (),
      {"arch": "one of train.architectures", "seed": "the top-level seed",
@@ -109,7 +111,7 @@ CASES = [
 # the type of a field that holds a whole section (shape_params: the overrides that
 # ShapeParams.for_family takes, a plain mapping)
 NESTED = {(PhysicsParams, "quality"): QualityBounds, (RenderParams, "cycles"): CyclesParams,
-          (RenderParams, "distractors"): DistractorParams,
+          (RenderParams, "distractors"): DistractorParams, (RenderParams, "markings"): MarkingParams,
           (SampleParams, "shape_params"): dict}
 
 

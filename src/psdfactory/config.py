@@ -514,6 +514,8 @@ def render_params(config: dict, dataset: str | None = None) -> dict:
         out.pop("cycles", None)
     if not out.get("distractors", {}).get("probability", 0):  # off: its settings rerun nothing
         out.pop("distractors", None)
+    if not out.get("markings", {}).get("probability", 0):
+        out.pop("markings", None)
     return out
 
 

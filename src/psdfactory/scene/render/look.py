@@ -20,6 +20,7 @@ from ... import PsdError
 from ...config import config_fields
 from .cycles import CyclesParams, Range
 from .distractors import DistractorParams
+from .markings import MarkingParams
 
 
 @dataclass(frozen=True)
@@ -62,16 +63,19 @@ class RenderParams:
     jpeg_fraction: float
     jpeg_quality: tuple[int, int]
     distractors: DistractorParams | None  # a scale card or ruler laid on the bed (distractors.py); None: off
+    markings: MarkingParams | None  # veins, speckle, patches on the particles (markings.py); None: off
     # the Cycles backend's settings: None where another backend renders (config.render_params
     # leaves them out of that slice, so that editing them reruns nothing)
     cycles: CyclesParams | None
 
     @classmethod
     def from_dict(cls, d: dict) -> RenderParams:
-        kw = config_fields(cls, {"cycles": None, "distractors": None, **d}, "render")
+        kw = config_fields(cls, {"cycles": None, "distractors": None, "markings": None, **d}, "render")
         for k, v in kw.items():
             if k == "distractors":
                 kw[k] = None if v is None else DistractorParams.from_dict(v)
+            elif k == "markings":
+                kw[k] = None if v is None else MarkingParams.from_dict(v)
             elif k == "cycles":
                 if v is not None:
                     kw[k] = CyclesParams.from_dict(v)
