@@ -228,8 +228,10 @@ def read_parquet(path: str | os.PathLike) -> pyarrow.Table:
         raise PsdError(f"{path} is not a readable Parquet file ({e}); delete it and rerun") from None
 
 
-def write_png(path: str | os.PathLike, array: np.ndarray) -> None:
-    """RGB uint8 (H, W, 3) or 16-bit grey (H, W) uint16."""
+def write_png(path: str | os.PathLike, array: np.ndarray, compress_level: int = 6) -> None:
+    """RGB uint8 (H, W, 3) or 16-bit grey (H, W) uint16. `compress_level` is zlib's (PIL's
+    default 6; 1 writes a photo-sized RGB image ~3x faster for ~3 % more bytes: a 3 MP overlay
+    0.35 s against 1.1 s)."""
     from PIL import Image
 
     if array.dtype == np.uint16:
@@ -239,7 +241,7 @@ def write_png(path: str | os.PathLike, array: np.ndarray) -> None:
     else:
         raise TypeError(f"write_png wants uint8 or uint16, got {array.dtype}")
     with atomic_path(path) as tmp:
-        img.save(tmp, format="PNG")
+        img.save(tmp, format="PNG", compress_level=compress_level)
 
 
 # ---- particle meshes: a user's own shapes (shape 'mesh') ----------------------------------------

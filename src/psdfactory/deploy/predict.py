@@ -746,7 +746,7 @@ class GrainOutputs:
         if self.overlay_dir:  # on the image as decoded
             over = draw_overlay(image, resize_mask(res.mask, image.shape[:2]), res.sizes_mm, m.ids,
                                 min_text_area_px=40)
-            write_png(self.overlay_dir / f"{self.names.get(path, path.stem)}.png", over)
+            write_png(self.overlay_dir / f"{self.names.get(path, path.stem)}.png", over, compress_level=1)
             self.written["overlays"] += 1
         if self.writer is not None:
             self.writer.writerows(particle_rows(path, res, size_hw))
