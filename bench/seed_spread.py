@@ -14,10 +14,14 @@ spread, so that a figure is quoted as mean ± spread, not as one draw:
    `seed` changed (the scenes keep the config's seed), into <results>/seed_spread/<seed>/<arch>/;
 3. each model is evaluated as rules/evaluate.smk does (`psdfactory evaluate`, on every dataset the
    config evaluates: the training dataset's test split, the out-of-distribution set and the
-   Cycles re-render of the test scenes in the default config), into .../<arch>/eval/;
+   Cycles re-render of the test scenes in the default config), into .../<arch>/eval/, and on
+   every photo set of the config's `photos` as rules/photos.smk does (`psdfactory
+   evaluate-photos`), into .../<arch>/eval/photos/<set>/;
 4. per model, dataset and target, R² and the mean relative error |pred − true| / true over the
    seeds are printed and written as Markdown (spread.md) and JSON (spread.json) under --out:
-   mean ± half-range, i.e. (max − min) / 2, and [min, max] in the JSON.
+   mean ± half-range, i.e. (max − min) / 2, and [min, max] in the JSON; per model and photo, the
+   grain detection F1 (grain finders) and the relative error of d10/d50/d90 against the photo's
+   reference, in the reference's size definition where the model gives it (a CNN: its own).
 
 Each model's seeds run back to back, the models in the order of --archs, and both files are
 rewritten after every run (marked partial until the last), so a run cut short still holds the
@@ -196,6 +200,18 @@ def markdown(summary: dict) -> str:
             rel = [cell(m[n]["rel_err"], 100, 0, " %") for n in NAMES]
             lines.append(f"| {ARCH_LABELS.get(arch, arch)} | {summary['datasets'][ds]['label']} | "
                          f"{m['d10']['r2']['n']} | " + " | ".join(r2 + rel) + " |")
+    if summary.get("photos"):
+        lines += ["", "Photos: grain detection F1 at IoU ≥ 0.5 (grains cut by the border left out; grain finders "
+                  "only) and the relative error (pred − ref) / ref of d10/d50/d90 against the reference grains, "
+                  "in the reference's size definition (a CNN reads its own).", "",
+                  "| model | photo | seeds | F1 | rel. error d10 | rel. error d50 | rel. error d90 |",
+                  "|---|---|---|---|---|---|---|"]
+        for arch, per_photo in summary["photos"].items():
+            for photo, m in per_photo.items():
+                f1 = cell(m["f1"]) if m.get("f1") else "—"
+                rel = [cell(m[n], 100, 0, " %") for n in NAMES]
+                lines.append(f"| {ARCH_LABELS.get(arch, arch)} | {photo} | {m['d50']['n']} | {f1} | "
+                             + " | ".join(rel) + " |")
     lines += ["", "Training minutes per run (mean over seeds): "
               + ", ".join(f"{ARCH_LABELS.get(a, a)} {t:.1f}" for a, t in summary["train_minutes"].items()) + "."]
     return "\n".join(lines) + "\n"
@@ -222,6 +238,18 @@ def write_summary(out: Path, meta: dict, archs: list[str], seeds: list[int], dat
             per_ds[ds]["seeds"] = [s for s in seeds if s in metrics.get(arch, {})]
         if per_ds:
             summary["models"][arch] = per_ds
+        per_photo: dict = {}
+        for s in seeds:
+            for pset, pm in metrics.get(arch, {}).get(s, {}).get("photos", {}).items():
+                for photo, r in pm["photos"].items():
+                    row = per_photo.setdefault(f"{pset}/{photo}", {"f1": [], **{n: [] for n in NAMES}})
+                    if pm.get("finds_grains") and r.get("detection"):
+                        row["f1"].append(r["detection"]["f1"])
+                    for n in NAMES:
+                        row[n].append(r["psd_rel_err"][n])
+        if per_photo:
+            summary.setdefault("photos", {})[arch] = {
+                k: {n: aggregate(v) for n, v in row.items() if v} for k, row in per_photo.items()}
     out.mkdir(parents=True, exist_ok=True)
     md = markdown(summary)
     (out / "spread.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")
@@ -281,7 +309,9 @@ def main() -> None:
     meta = {"config": str(Path(a.config)), "command": command, "cpu": cpu,
             "commit": commit.stdout.strip() + (" (+ uncommitted changes in src/ or rules/)" if dirty else "")}
     # each model's seeds back to back, models in the order of --archs: a partial run holds whole spreads
-    jobs = [(kind, f"seed {s} {arch}") for arch in archs for s in seeds for kind in (f"train {arch}", f"eval {arch}")]
+    photo_sets = sorted(cfg.get("photos") or {})
+    kinds = ("train", "eval", "photos") if photo_sets else ("train", "eval")
+    jobs = [(f"{kind} {arch}", f"seed {s} {arch}") for arch in archs for s in seeds for kind in kinds]
     progress = Progress(jobs)
     psd = psdfactory_cmd()
     metrics: dict = {}  # arch -> seed -> metrics.json
@@ -328,6 +358,24 @@ def main() -> None:
                 info.write_text(json.dumps(timing), encoding="utf-8")
                 progress.finish(f"eval {arch}", timing["eval_s"])
             m = json.loads((ev / "metrics.json").read_text(encoding="utf-8"))
+            if photo_sets:
+                todo = [n for n in photo_sets if not (ev / "photos" / n / "metrics.json").is_file()]
+                if not todo:
+                    progress.say(f"{label}: photos evaluated before, kept")
+                    progress.finish(f"photos {arch}", None)
+                else:
+                    progress.say(f"{label}: evaluating on the photo set(s) {', '.join(todo)}")
+                    t0 = time.monotonic()
+                    for name in todo:
+                        pdir = ev / "photos" / name
+                        pdir.mkdir(parents=True, exist_ok=True)
+                        pp = json.dumps({"photoset": psd_config.photo_params(cfg, name), "precision": eval_precision})
+                        cmd = [*psd, "--log", str(pdir / "evaluate_photos.log"), "evaluate-photos", "--params", pp,
+                               "--model", str(run / "model.pt"), "--out-dir", str(pdir), "--threads", str(a.threads)]
+                        run_watched(cmd, progress, label, None, None)
+                    progress.finish(f"photos {arch}", time.monotonic() - t0)
+                m["photos"] = {n: json.loads((ev / "photos" / n / "metrics.json").read_text(encoding="utf-8"))
+                               for n in photo_sets}
             metrics.setdefault(arch, {})[seed] = m
             if timing.get("train_s"):
                 train_minutes.setdefault(arch, []).append(timing["train_s"] / 60)
