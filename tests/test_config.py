@@ -137,3 +137,12 @@ def test_snakemake_refuses_bad_config_before_any_job(tmp_path):
     out = r.stdout + r.stderr
     assert "datasets.train.size.sigma" in out and "lo <= hi" in out and f"{path}: invalid config" in out
     assert not (tmp_path / "results").exists()
+
+
+@pytest.mark.parametrize("section, key", [("markings", "veins"), ("markings", "speckle_mm"),
+                                          ("distractors", "brightness")])
+def test_a_reversed_range_of_the_markings_or_distractors_is_refused_by_name(section, key):
+    cfg = tiny_config()
+    cfg["render"][section] = {"probability": 0.5, key: [0.9, 0.3]}
+    with pytest.raises(PsdError, match=rf"render\.{section}\.{key}: \[0\.9, 0\.3\] must have lo <= hi"):
+        psd_config.validate(cfg)

@@ -414,6 +414,10 @@ def semantic_problems(config: dict) -> list[str]:
                   "surface_detail", "particle_grain_mm", "table_texture", "table_grain_mm", "ground_level_mm",
                   "light_tint", "jpeg_quality"):
             _ordered(f"{key}.{k}", r[k], problems)
+        for sub in ("markings", "distractors"):  # every [lo, hi] range of these sections
+            for k, v in (r.get(sub) or {}).items():
+                if k != "kinds" and isinstance(v, list) and len(v) == 2:
+                    _ordered(f"{key}.{sub}.{k}", v, problems)
         lo, hi = r["light_elevation_deg"]
         if not (0 < lo and hi <= 90):
             problems.append(f"{key}.light_elevation_deg: must lie in (0, 90]")
