@@ -1,16 +1,14 @@
 """Things in a photo that are not grains (scale card, ruler), drawn over a render: the mask is 0
 under them, and switching them on changes no other draw of the scene."""
 
-import copy
-import shutil
-
 import numpy as np
 import pytest
 
 from psdfactory import PsdError
-from psdfactory import config as psd_config
 from psdfactory.io import read_json, read_png
 from psdfactory.scene.render.distractors import KINDS, DistractorParams, add_distractors
+
+from .render_helpers import rerender
 
 
 def params(probability: float = 1.0, kinds=KINDS) -> DistractorParams:
@@ -41,18 +39,9 @@ def test_no_distractor_at_probability_zero_and_refusals():
 
 @pytest.mark.slow
 def test_switching_them_on_changes_nothing_but_where_they_lie(tiny_results, tmp_path):
-    from psdfactory.scene.stages import run_render
-
-    cfg, root = tiny_results
+    _, root = tiny_results
     src = root / "tiny" / "scenes" / "tiny-000001"
-    dirs = {}
-    for p in (0.0, 1.0):
-        d = tmp_path / f"p{p}"
-        shutil.copytree(src, d)
-        c = copy.deepcopy(cfg)
-        c["render"]["distractors"] = {"probability": p}
-        run_render(psd_config.render_params(psd_config.validate(c)), d)
-        dirs[p] = d
+    dirs = rerender(tiny_results, tmp_path, "distractors")
     off, on = (read_png(dirs[p] / "mask.png") for p in (0.0, 1.0))
     np.testing.assert_array_equal(off, read_png(src / "mask.png"))  # probability 0: the scene as before
     drawn = read_json(dirs[1.0] / "render.json")["distractors"]

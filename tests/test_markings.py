@@ -1,15 +1,14 @@
 """Veins, speckle and patches on the particles of a render: only marked particles' pixels change,
 the mask never, lines are as wide as asked, and switching them on changes no other draw."""
 
-import copy
-import shutil
 
 import numpy as np
 import pytest
 
-from psdfactory import config as psd_config
 from psdfactory.io import read_json, read_png
 from psdfactory.scene.render.markings import KINDS, MarkingParams, add_markings, draw_particles, vein_lines
+
+from .render_helpers import rerender
 
 DEFAULTS = {"veins": [0.5, 0.5], "vein_width_mm": [1.0, 1.0], "vein_spacing_mm": [10.0, 10.0],
             "speckle": [0.4, 0.4], "speckle_mm": [1.5, 1.5], "patches": [0.2, 0.2]}
@@ -71,18 +70,9 @@ def test_the_particles_draws_do_not_depend_on_the_contrasts():
 
 @pytest.mark.slow
 def test_switching_them_on_changes_only_the_particles_pixels(tiny_results, tmp_path):
-    from psdfactory.scene.stages import run_render
-
-    cfg, root = tiny_results
+    _, root = tiny_results
     src = root / "tiny" / "scenes" / "tiny-000001"
-    dirs = {}
-    for p in (0.0, 1.0):
-        d = tmp_path / f"p{p}"
-        shutil.copytree(src, d)
-        c = copy.deepcopy(cfg)
-        c["render"]["markings"] = {"probability": p}
-        run_render(psd_config.render_params(psd_config.validate(c)), d)
-        dirs[p] = d
+    dirs = rerender(tiny_results, tmp_path, "markings")
     mask = read_png(src / "mask.png")
     for p in (0.0, 1.0):
         np.testing.assert_array_equal(read_png(dirs[p] / "mask.png"), mask)  # the particles are the same
