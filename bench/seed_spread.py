@@ -17,11 +17,12 @@ spread, so that a figure is quoted as mean ± spread, not as one draw:
    Cycles re-render of the test scenes in the default config), into .../<arch>/eval/, and on
    every photo set of the config's `photos` as rules/photos.smk does (`psdfactory
    evaluate-photos`), into .../<arch>/eval/photos/<set>/;
-4. per model, dataset and target, R² and the mean relative error |pred − true| / true over the
-   seeds are printed and written as Markdown (spread.md) and JSON (spread.json) under --out:
-   mean ± half-range, i.e. (max − min) / 2, and [min, max] in the JSON; per model and photo, the
-   grain detection F1 (grain finders) and the relative error of d10/d50/d90 against the photo's
-   reference, in the reference's size definition where the model gives it (a CNN: its own).
+4. per model, dataset and target, R², the mean absolute error (mm) and the mean relative error
+   |pred − true| / true over the seeds are printed and written as Markdown (spread.md) and JSON
+   (spread.json) under --out: mean ± half-range, i.e. (max − min) / 2, and [min, max] in the
+   JSON; per model and photo, the grain detection F1 (grain finders) and the error of
+   d10/d50/d90 against the photo's reference, in mm and relative, in the reference's size
+   definition where the model gives it (a CNN: its own).
 
 Each model's seeds run back to back, the models in the order of --archs, and both files are
 rewritten after every run (marked partial until the last), so a run cut short still holds the
@@ -179,14 +180,16 @@ def dataset_label(cfg: dict, ds: str, n_scenes: int | None) -> str:
 
 
 def markdown(summary: dict) -> str:
-    """One table: per model and dataset, R² and relative error per target, mean ± half-range."""
+    """Per model and dataset, R², MAE and relative error per target, mean ± half-range; per
+    model and photo, F1 and the d-values' errors."""
     seeds = summary["seeds"]
-    lines = [f"Per-target R² and mean relative error |pred − true| / true, mean ± (max − min) / 2 over the "
+    lines = [f"Per-target R², mean absolute error (mm) and mean relative error |pred − true| / true, "
+             f"mean ± (max − min) / 2 over the "
              f"training seeds of each row (of {', '.join(map(str, seeds))}; a row of one seed is one run, no "
              f"spread); `{summary['command']}`, {summary['date'][:10]}, commit {summary['commit']}, "
              f"{summary['cpu']}." + ("" if summary["complete"] else " **Partial: not every run is done yet.**"), "",
              "| model | test scenes | seeds | R² d10 | R² d50 | R² d90 | "
-             "rel. error d10 | rel. error d50 | rel. error d90 |",
+             "error d10: MAE, rel. | error d50 | error d90 |",
              "|---|---|---|---|---|---|---|---|---|"]
 
     def cell(x: dict, scale: float = 1.0, digits: int = 2, unit: str = "") -> str:
@@ -197,19 +200,19 @@ def markdown(summary: dict) -> str:
     for arch, per_ds in summary["models"].items():
         for ds, m in per_ds.items():
             r2 = [cell(m[n]["r2"]) for n in NAMES]
-            rel = [cell(m[n]["rel_err"], 100, 0, " %") for n in NAMES]
+            rel = [f"{cell(m[n]['mae'], unit=' mm')}, {cell(m[n]['rel_err'], 100, 0, ' %')}" for n in NAMES]
             lines.append(f"| {ARCH_LABELS.get(arch, arch)} | {summary['datasets'][ds]['label']} | "
                          f"{m['d10']['r2']['n']} | " + " | ".join(r2 + rel) + " |")
     if summary.get("photos"):
         lines += ["", "Photos: grain detection F1 at IoU ≥ 0.5 (grains cut by the border left out; grain finders "
-                  "only) and the relative error (pred − ref) / ref of d10/d50/d90 against the reference grains, "
-                  "in the reference's size definition (a CNN reads its own).", "",
-                  "| model | photo | seeds | F1 | rel. error d10 | rel. error d50 | rel. error d90 |",
+                  "only) and the error pred − ref of d10/d50/d90 against the reference grains, in mm and "
+                  "relative to ref, in the reference's size definition (a CNN reads its own).", "",
+                  "| model | photo | seeds | F1 | error d10: mm, rel. | error d50 | error d90 |",
                   "|---|---|---|---|---|---|---|"]
         for arch, per_photo in summary["photos"].items():
             for photo, m in per_photo.items():
                 f1 = cell(m["f1"]) if m.get("f1") else "—"
-                rel = [cell(m[n], 100, 0, " %") for n in NAMES]
+                rel = [f"{cell(m[n + '_mm'], digits=1, unit=' mm')}, {cell(m[n], 100, 0, ' %')}" for n in NAMES]
                 lines.append(f"| {ARCH_LABELS.get(arch, arch)} | {photo} | {m['d50']['n']} | {f1} | "
                              + " | ".join(rel) + " |")
     lines += ["", "Training minutes per run (mean over seeds): "
@@ -234,7 +237,8 @@ def write_summary(out: Path, meta: dict, archs: list[str], seeds: list[int], dat
                 continue
             summary["datasets"].setdefault(ds, {"n_scenes": runs[0]["n"],
                                                 "label": dataset_label(cfg, ds, runs[0]["n"])})
-            per_ds[ds] = {n: {k: aggregate([r[n][k] for r in runs]) for k in ("r2", "rel_err")} for n in NAMES}
+            per_ds[ds] = {n: {k: aggregate([r[n][k] for r in runs]) for k in ("r2", "mae", "rel_err")}
+                          for n in NAMES}
             per_ds[ds]["seeds"] = [s for s in seeds if s in metrics.get(arch, {})]
         if per_ds:
             summary["models"][arch] = per_ds
@@ -242,11 +246,13 @@ def write_summary(out: Path, meta: dict, archs: list[str], seeds: list[int], dat
         for s in seeds:
             for pset, pm in metrics.get(arch, {}).get(s, {}).get("photos", {}).items():
                 for photo, r in pm["photos"].items():
-                    row = per_photo.setdefault(f"{pset}/{photo}", {"f1": [], **{n: [] for n in NAMES}})
+                    row = per_photo.setdefault(f"{pset}/{photo}", {"f1": [], **{n: [] for n in NAMES},
+                                                                    **{n + "_mm": [] for n in NAMES}})
                     if pm.get("finds_grains") and r.get("detection"):
                         row["f1"].append(r["detection"]["f1"])
                     for n in NAMES:
                         row[n].append(r["psd_rel_err"][n])
+                        row[n + "_mm"].append(r["psd_mm"][n] - r["reference_mm"][n])
         if per_photo:
             summary.setdefault("photos", {})[arch] = {
                 k: {n: aggregate(v) for n, v in row.items() if v} for k, row in per_photo.items()}
