@@ -30,6 +30,7 @@ from psdfactory.learn.instances.targets import (
     instance_targets,
     random_crops,
     target_stack,
+    zoom,
 )
 from psdfactory.learn.instances.training import InstanceSettings
 from psdfactory.learn.instances.watershed import DEFAULT_POSTPROCESS, postprocess
@@ -190,6 +191,45 @@ def test_loss_is_lower_for_the_true_maps_and_crops_keep_targets_aligned():
     assert x.shape == (8, 3, 20, 20) and tt.shape == (8, len(MAPS), 20, 20)
     assert torch.equal(x[:, 0] > 0, tt[:, 0] > 0)
     assert len({tuple(c[0].flatten().tolist()) for c in x}) > 1  # not all the same crop
+
+
+@pytest.mark.parametrize("s", [2.0, 0.5])
+def test_a_zoomed_crop_keeps_its_targets_true_to_the_image(s):
+    """Magnified by s: the grains' area grows by s², the size map says s times larger, the
+    distance map stays in [0, 1] on the grains, and the boundary stays a line around each grain."""
+    mask = discs((64, 64), [(16, 16), (16, 46), (46, 30)], 10)
+    sizes = np.array([np.nan, 20.0, 20.0, 20.0])
+    t = target_stack(mask, sizes)
+    img = torch.from_numpy(np.where(mask > 0, 200, 30).astype(np.uint8))[None].repeat(3, 1, 1)
+    size = int(64 * s)
+    x, tz = zoom(img, t, size)
+    assert x.shape == (3, size, size) and tz.shape == (len(MAPS), size, size) and x.dtype == torch.uint8
+    fg = tz[0] > 0
+    assert float(fg.sum()) == pytest.approx(float((mask > 0).sum()) * s * s, rel=0.08)
+    assert torch.equal(fg, x[0] > 115)  # the image and the foreground agree
+    np.testing.assert_allclose(decode_size(tz[3][fg].numpy()), 20.0 * s, rtol=1e-5)
+    assert float(tz[2][fg].max()) <= 1.0 and float(tz[2][~fg].abs().max()) == 0.0
+    # the boundary: a closed line on each grain (each grain's interior stays apart from the others)
+    from scipy import ndimage
+
+    inside = fg.numpy() & (tz[1].numpy() == 0)
+    assert ndimage.label(inside)[1] == 3
+    assert 0 < float(tz[1].sum()) < 0.5 * float(fg.sum())
+
+
+def test_zoomed_crops_draw_their_scale_and_unzoomed_ones_are_as_before():
+    mask = discs((64, 64), [(16, 16), (16, 46), (46, 30)], 10)
+    t = target_stack(mask, np.array([np.nan, 20.0, 20.0, 20.0]))[None]
+    img = (t[:, :1].repeat(1, 3, 1, 1) * 255).to(torch.uint8)
+    idx = torch.zeros(16, dtype=torch.long)
+    a = random_crops(img, t, idx, 32, torch.Generator().manual_seed(3))
+    b = random_crops(img, t, idx, 32, torch.Generator().manual_seed(3), scale=(1.0, 1.0))
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])  # off: the same draws as without it
+    x, tt = random_crops(img, t, idx, 32, torch.Generator().manual_seed(3), scale=(0.6, 1.8))
+    fg = tt[:, 0] > 0
+    sizes = [float(np.median(decode_size(tt[i, 3][fg[i]].numpy()))) for i in range(16) if fg[i].any()]
+    assert min(sizes) < 20.0 * 0.9 and max(sizes) > 20.0 * 1.1  # grains drawn smaller and larger
+    assert all(20.0 * 0.6 * 0.99 <= v <= 20.0 * 1.8 * 1.01 for v in sizes)
 
 
 def test_readout_recovers_a_linear_map_and_orders_the_targets():

@@ -115,16 +115,26 @@ def boundary_weight(targets: torch.Tensor) -> float:
 
 
 def random_crops(images: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor, size: int,
-                 gen: torch.Generator, d4: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
-    """Random size×size crops of images[idx] (uint8 N×3×H×W) and their targets (float N×3×H×W),
-    with `d4` each turned by a random element of the square's symmetry group, the same for both."""
+                 gen: torch.Generator, d4: bool = True,
+                 scale: tuple[float, float] = (1.0, 1.0)) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random size×size crops of images[idx] (uint8 N×3×H×W) and their targets (float N×C×H×W,
+    MAPS), with `d4` each turned by a random element of the square's symmetry group, the same for
+    both. With `scale` (lo, hi) ≠ (1, 1) each crop is also magnified by s, log-uniform in
+    [lo, hi] (`zoom`): every grain looks s times larger, as at another mm per px."""
     h, w = images.shape[-2:]
     xs, ts = [], []
     for i in idx.tolist():
-        r0 = int(torch.randint(0, h - size + 1, (1,), generator=gen))
-        c0 = int(torch.randint(0, w - size + 1, (1,), generator=gen))
-        x = images[i, :, r0 : r0 + size, c0 : c0 + size]
-        t = targets[i, :, r0 : r0 + size, c0 : c0 + size]
+        win = size
+        if tuple(scale) != (1.0, 1.0):
+            lo, hi = np.log(scale[0]), np.log(scale[1])
+            s = float(np.exp(lo + (hi - lo) * float(torch.rand((), generator=gen))))
+            win = int(np.clip(round(size / s), 8, min(h, w)))
+        r0 = int(torch.randint(0, h - win + 1, (1,), generator=gen))
+        c0 = int(torch.randint(0, w - win + 1, (1,), generator=gen))
+        x = images[i, :, r0 : r0 + win, c0 : c0 + win]
+        t = targets[i, :, r0 : r0 + win, c0 : c0 + win]
+        if win != size:
+            x, t = zoom(x, t, size)
         if not d4:
             xs.append(x)
             ts.append(t)
@@ -134,6 +144,31 @@ def random_crops(images: torch.Tensor, targets: torch.Tensor, idx: torch.Tensor,
         xs.append(view(x, k, flip))
         ts.append(view(t, k, flip))
     return torch.stack(xs), torch.stack(ts)
+
+
+def zoom(image: torch.Tensor, target: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A square crop (uint8 3×w×w, its targets C×w×w) resized to size×size, the targets kept
+    true to the resized image: foreground and distance (per grain, scale-free) interpolated,
+    foreground thresholded at 1/2; the boundary kept a thin line (area-weighted, ≥ 1/4 of a
+    pixel's area, so that shrinking does not break it); the size map (log size in px, 0 off the
+    grains) averaged over the grain pixels under each new pixel and moved by the magnification's
+    octaves."""
+    w = image.shape[-1]
+    s = size / w
+    aa = s < 1  # antialias when shrinking
+    x = F.interpolate(image[None].float(), size=(size, size), mode="bilinear", align_corners=False, antialias=aa)[0]
+    x = x.round().clamp(0, 255).to(torch.uint8)
+    t = F.interpolate(target[None], size=(size, size), mode="bilinear", align_corners=False, antialias=aa)[0]
+    out = t.clone()
+    fg = t[0] > 0.5
+    out[0] = fg.float()
+    out[1] = (t[1] >= 0.25).float()
+    out[2] = t[2] * fg
+    if t.shape[0] > 3:  # the size map: averaged over the grain pixels under each new pixel, s times larger
+        den = t[0].clamp_min(1e-6)
+        octaves = float(np.log2(SIZE_RANGE_PX[1] / SIZE_RANGE_PX[0]))
+        out[3] = torch.where(fg, ((t[3] / den) + float(np.log2(s)) / octaves).clamp(0, 1), torch.zeros_like(t[3]))
+    return x, out
 
 
 

@@ -145,7 +145,8 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         order = torch.cat([torch.randperm(len(x_train), generator=gen) for _ in range(settings.crops_per_image)])
         total, n = 0.0, 0
         for b in range(0, len(order), params.batch_size):
-            x, t = random_crops(x_train, t_train, order[b : b + params.batch_size], crop, gen, params.augment)
+            x, t = random_crops(x_train, t_train, order[b : b + params.batch_size], crop, gen, params.augment,
+                                tuple(params.scale_augment))
             if settings.photometric > 0:
                 x = photometric(x, gen, settings.photometric)
             x, t = normalise(x.to(device)), t.to(device)
