@@ -114,6 +114,8 @@ def _ordered(name: str, r: list, problems: list[str], strict: bool = False) -> N
 
 # ---- per-dataset render settings and re-render datasets -------------------------------------
 
+# render sections drawn over a share of the scenes or particles (`probability`), off at 0
+SHARE_DRAWS = ("markings", "distractors")
 MAX_YAML_NODES = 100_000  # a config file expanded through its aliases: more is a "billion laughs", not a config
 MAX_SCENE_JOBS = 250_000  # stage jobs the DAG may hold (4 per batch of scenes_per_job scenes; bench/dag_scale.py)
 REPO = Path(__file__).resolve().parents[2]  # the source checkout, when the package runs from one
@@ -414,7 +416,7 @@ def semantic_problems(config: dict) -> list[str]:
                   "surface_detail", "particle_grain_mm", "table_texture", "table_grain_mm", "ground_level_mm",
                   "light_tint", "jpeg_quality"):
             _ordered(f"{key}.{k}", r[k], problems)
-        for sub in ("markings", "distractors"):  # every [lo, hi] range of these sections
+        for sub in SHARE_DRAWS:  # every [lo, hi] range of these sections
             for k, v in (r.get(sub) or {}).items():
                 if k != "kinds" and isinstance(v, list) and len(v) == 2:
                     _ordered(f"{key}.{sub}.{k}", v, problems)
@@ -516,10 +518,9 @@ def render_params(config: dict, dataset: str | None = None) -> dict:
     out = copy.deepcopy(dataset_render(config, dataset) if dataset else config["render"])
     if out["backend"] != "cycles":
         out.pop("cycles", None)
-    if not out.get("distractors", {}).get("probability", 0):  # off: its settings rerun nothing
-        out.pop("distractors", None)
-    if not out.get("markings", {}).get("probability", 0):
-        out.pop("markings", None)
+    for sub in SHARE_DRAWS:  # off (probability 0): their settings rerun nothing
+        if not out.get(sub, {}).get("probability", 0):
+            out.pop(sub, None)
     return out
 
 
