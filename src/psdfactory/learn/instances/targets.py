@@ -21,6 +21,7 @@ from .draw import instance_outlines
 MAPS = ("foreground", "boundary", "distance", "size")
 MASK_MAPS = MAPS[:3]  # what a model trained before the size map predicts
 SIZE_RANGE_PX = (0.5, 1024.0)  # sizes the size map can express (log-linear in between)
+SIZE_OCTAVES = float(np.log2(SIZE_RANGE_PX[1] / SIZE_RANGE_PX[0]))  # the size map's span: 1.0 in its units
 
 
 # ---------------------------------------------------------------------------------------------
@@ -98,8 +99,7 @@ def instance_loss(logits: torch.Tensor, targets: torch.Tensor, boundary_pos_weig
     l_d = ((torch.sigmoid(logits[:, 2]) - dist).abs() * fg).sum() / n_fg
     parts = {"fg": l_fg, "boundary": l_bd, "distance": l_d}
     if logits.shape[1] > 3:
-        octaves = float(np.log2(SIZE_RANGE_PX[1] / SIZE_RANGE_PX[0]))
-        parts["size"] = ((torch.sigmoid(logits[:, 3]) - targets[:, 3]).abs() * fg).sum() / n_fg * octaves
+        parts["size"] = ((torch.sigmoid(logits[:, 3]) - targets[:, 3]).abs() * fg).sum() / n_fg * SIZE_OCTAVES
     total = sum(parts.values())
     return total, {k: float(v.detach()) for k, v in parts.items()}
 
@@ -166,8 +166,8 @@ def zoom(image: torch.Tensor, target: torch.Tensor, size: int) -> tuple[torch.Te
     out[2] = t[2] * fg
     if t.shape[0] > 3:  # the size map: averaged over the grain pixels under each new pixel, s times larger
         den = t[0].clamp_min(1e-6)
-        octaves = float(np.log2(SIZE_RANGE_PX[1] / SIZE_RANGE_PX[0]))
-        out[3] = torch.where(fg, ((t[3] / den) + float(np.log2(s)) / octaves).clamp(0, 1), torch.zeros_like(t[3]))
+        out[3] = torch.where(fg, ((t[3] / den) + float(np.log2(s)) / SIZE_OCTAVES).clamp(0, 1),
+                             torch.zeros_like(t[3]))
     return x, out
 
 
