@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import pytest
@@ -19,6 +20,19 @@ def _psdfactory_log_level_restored():
     level = logger.level
     yield
     logger.setLevel(level)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _predict_cache_in_tmp(tmp_path_factory):
+    """predict's ONNX copies and timings (deploy/fastpath.py) go to a folder of the test run, not
+    to the user's ~/.cache (subprocesses inherit it)."""
+    old = os.environ.get("PSDFACTORY_CACHE")
+    os.environ["PSDFACTORY_CACHE"] = str(tmp_path_factory.mktemp("psdfactory-cache"))
+    yield
+    if old is None:
+        os.environ.pop("PSDFACTORY_CACHE", None)
+    else:
+        os.environ["PSDFACTORY_CACHE"] = old
 
 
 def tiny_config(**dataset_overrides) -> dict:

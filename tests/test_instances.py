@@ -613,3 +613,54 @@ def test_the_fast_paths_find_the_same_grains_as_fp32(tiny, tmp_path):
         checked.append(key)
     assert {"fp32", "channels_last"} <= set(checked)
     assert sum(int(b.max()) for b in base) >= 3  # grains were found to compare (not a vacuous pass)
+
+
+def test_predict_runs_a_model_pt_in_onnx_runtime_from_a_cached_copy(tiny, tmp_path, monkeypatch):
+    """predict --runtime onnx / auto: the model.pt's network exported once into the cache (keyed by
+    the file's hash), reloaded from there later, made again when the cached file is damaged; the
+    readings and the grains the same as PyTorch's; auto follows the timing measured on this
+    machine (kept per CPU, threads and versions) and measures again on another."""
+    from psdfactory.deploy import fastpath, quantize
+    from psdfactory.deploy.predict import load_predictor, predict_files
+
+    root, model_path, _ = tiny
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("PSDFACTORY_CACHE", str(cache))
+    img = str(root / "tiny" / "scenes" / "tiny-000001" / "image.png")
+    keys = ("d10_mm", "d50_mm", "d90_mm")
+    ref = predict_files(model_path, [img], particles_out=tmp_path / "ref.csv", runtime="torch")[0]
+    got = predict_files(model_path, [img], particles_out=tmp_path / "got.csv", runtime="onnx")[0]
+    assert not got["error"] and [got[k] for k in keys] == pytest.approx([ref[k] for k in keys], abs=1e-3)
+    assert (tmp_path / "got.csv").read_text().count("\n") == (tmp_path / "ref.csv").read_text().count("\n")
+    copies = list(cache.glob("*.onnx"))
+    assert len(copies) == 1 and copies[0].stem == fastpath.file_digest(model_path)
+    assert load_predictor(model_path, runtime="torch").engine == "torch"
+
+    real_export = quantize.export_onnx
+    monkeypatch.setattr(quantize, "export_onnx", lambda *a, **k: pytest.fail("exported again"))
+    assert load_predictor(model_path, runtime="onnx").engine == "onnx"  # from the cache
+    copies[0].write_bytes(b"not an onnx model")  # damaged: made again
+    monkeypatch.setattr(quantize, "export_onnx", real_export)
+    assert load_predictor(model_path, runtime="onnx").engine == "onnx"
+    assert copies[0].stat().st_size > 1000
+
+    # auto: timed once on this machine, the faster kept; the timing reused; another machine measures again
+    timings = cache / f"{copies[0].stem}.timings.json"
+    assert load_predictor(model_path, runtime="auto").engine in ("torch", "onnx") and timings.is_file()
+    key = fastpath.machine_key(torch.get_num_threads())
+    for faster, slower in (("torch", "onnx"), ("onnx", "torch")):
+        timings.write_text(json.dumps({key: {"size_hw": [48, 48], faster: 0.01, slower: 0.02}}))
+        monkeypatch.setattr(fastpath, "time_engines", lambda *a, **k: pytest.fail("measured again"))
+        assert load_predictor(model_path, runtime="auto").engine == faster
+    timings.write_text(json.dumps({"another CPU": {"size_hw": [48, 48], "torch": 0.01, "onnx": 0.02}}))
+    monkeypatch.setattr(fastpath, "time_engines", lambda runners, size_hw: {"torch": 2.0, "onnx": 1.0})
+    assert load_predictor(model_path, runtime="auto").engine == "onnx"
+    assert set(json.loads(timings.read_text())) == {"another CPU", key}
+
+    # ONNX Runtime runs on the CPU only: on a GPU auto keeps PyTorch, onnx is refused
+    est = load_predictor(model_path, runtime="torch")
+    assert fastpath.choose(est, model_path, "auto", torch.device("cuda")).engine == "torch"
+    with pytest.raises(PsdError, match="ONNX Runtime runs models on the CPU"):
+        fastpath.choose(est, model_path, "onnx", torch.device("cuda"))
+    with pytest.raises(PsdError, match="runtime 'fast'"):
+        fastpath.choose(est, model_path, "fast", torch.device("cpu"))

@@ -99,7 +99,8 @@ def synthetic_model(monkeypatch):
     """predict's model loader gives the synthetic instance estimator; the calls to its network
     are counted (their input sizes)."""
     calls: list = []
-    monkeypatch.setattr(predict, "load_predictor", lambda path, device="cpu": synthetic_estimator(calls))
+    monkeypatch.setattr(predict, "load_predictor", lambda path, device="cpu", runtime="torch":
+                        synthetic_estimator(calls))
     return calls
 
 

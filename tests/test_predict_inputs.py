@@ -236,7 +236,7 @@ from psdfactory.learn.cnn import CnnRegressor
 
 META = {meta!r}
 
-def load_predictor(model_path, device="cpu"):
+def load_predictor(model_path, device="cpu", runtime="torch"):
     def run(x):
         time.sleep({sleep})
         m = float(x.mean())
@@ -251,7 +251,7 @@ def stub_predictor(monkeypatch, calls: list):
     exec(STUB.format(meta=META, sleep=0), ns)
     inner = ns["load_predictor"]
 
-    def counting(model_path, device="cpu"):
+    def counting(model_path, device="cpu", runtime="torch"):
         est = inner(model_path, device)
         run = est.run
         est.run = lambda x: calls.append(1) or run(x)

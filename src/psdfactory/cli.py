@@ -11,7 +11,7 @@ import traceback
 from pathlib import Path
 
 from . import PsdError, __version__
-from .config import PREDICT_TILE_PX
+from .config import PREDICT_RUNTIMES, PREDICT_TILE_PX
 from .psd import GRAIN_WEIGHTINGS, SIZE_DEFINITIONS
 
 logger = logging.getLogger(__name__)
@@ -254,7 +254,8 @@ def cmd_predict(a: argparse.Namespace) -> int:
                                        emit=emit, overlay_dir=Path(a.overlay) if a.overlay else None,
                                        masks_dir=Path(a.masks) if a.masks else None,
                                        particles_out=Path(a.particles) if a.particles else None,
-                                       size_definition=a.size_definition, weighting=a.weighting, tile=a.tile)
+                                       size_definition=a.size_definition, weighting=a.weighting, tile=a.tile,
+                                       runtime=a.runtime)
     except KeyboardInterrupt:
         if out is not None:
             logger.error(f"psdfactory predict: interrupted; the rows done so far are in {partial_path(out)} "
@@ -512,6 +513,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "(failed ones are retried)")
     p.add_argument("--device", default="cpu", metavar="DEVICE",
                    help="where the model runs: cpu, auto (cuda when there is one), cuda, cuda:N (e.g. cuda:1) or mps")
+    p.add_argument("--runtime", choices=PREDICT_RUNTIMES, default="auto",
+                   help="what runs a model.pt's network on the CPU: torch (PyTorch), onnx (an ONNX Runtime copy, "
+                   "made once and kept in ~/.cache/psdfactory or $PSDFACTORY_CACHE), or auto: the faster of the two "
+                   "as timed once on this machine (default: auto; on a GPU PyTorch runs it; an .onnx model always "
+                   "runs in ONNX Runtime)")
     p.add_argument("--overlay", metavar="DIR", help="instance models: write each image with its particles' outlines "
                    "and sizes (mm) drawn on as DIR/<image stem>.png")
     p.add_argument("--masks", metavar="DIR", help="instance models: write each image's instance mask as "

@@ -27,6 +27,7 @@ DEFAULT_INPUT_SIZE = {"inception_v3": 299, "instances": 128}
 # psdfactory predict --tile: the side (px at the network's scale) of the tiles an image too large for one pass is
 # run in by an estimator whose outputs are maps (~1.2 GB for the instance network on a CPU)
 PREDICT_TILE_PX = 1024
+PREDICT_RUNTIMES = ("auto", "torch", "onnx")  # what runs a model.pt's network in predict (deploy/fastpath.py)
 
 
 def default_input_size(arch: str) -> int:

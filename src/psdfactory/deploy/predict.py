@@ -259,15 +259,18 @@ def predict_image(est: Estimator, x: torch.Tensor, mm_per_px: float, tile: int |
     return est.read(tiled_outputs(est, x, tile, where), [mm_per_px])[0]
 
 
-def load_predictor(model_path: Path, device: str = "cpu") -> Estimator:
-    """A model file as its estimator (`learn.estimator.Estimator`): a `model.pt` runs in PyTorch;
-    an exported `.onnx` (fp32 or int8, with the export's meta.json beside it) runs in ONNX
-    Runtime on the CPU."""
+def load_predictor(model_path: Path, device: str = "cpu", runtime: str = "torch") -> Estimator:
+    """A model file as its estimator (`learn.estimator.Estimator`): a `model.pt` runs in PyTorch,
+    or with `runtime` "onnx" or "auto" in ONNX Runtime where that is faster here
+    (`fastpath.choose`); an exported `.onnx` (fp32 or int8, with the export's meta.json beside
+    it) runs in ONNX Runtime on the CPU."""
     model_path = Path(model_path)
     if model_path.suffix != ".onnx":
         from ..learn.runtime import load_estimator, pick_device
+        from .fastpath import choose
 
-        return load_estimator(model_path, pick_device(device))
+        dev = pick_device(device)
+        return choose(load_estimator(model_path, dev), model_path, runtime, dev)
     from ..learn.registry import estimator_class
     from ..learn.runtime import meta_problems
     from .quantize import OrtModel, require_onnxruntime
@@ -378,11 +381,12 @@ def predict_rows(est: Estimator, files: list[Path], mm_per_px: float | None = No
 
 def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, device: str, outputs: dict | None = None,
                 size_definition: str | None = None, weighting: str | None = None,
-                tile: int | None = DEFAULT_TILE_PX):
+                tile: int | None = DEFAULT_TILE_PX, runtime: str = "torch"):
     """The model (its runner and meta, described in the log), the image files to predict and what
     the d-values will be of (``reading``). `outputs`: an instance model's --overlay / --masks /
-    --particles (refused for the others); `tile`: checked against the model's margin."""
-    est = load_predictor(model_path, device)
+    --particles (refused for the others); `tile`: checked against the model's margin; `runtime`:
+    the engine for a model.pt (`fastpath.RUNTIMES`)."""
+    est = load_predictor(model_path, device, runtime)
     meta = est.meta
     if not est.finds_grains and any((outputs or {}).values()):
         raise PsdError(f"--overlay, --masks and --particles need a model that finds grains (e.g. the instance "
@@ -403,11 +407,13 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
 def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None, device: str = "cpu",
                   overlay_dir: Path | None = None, masks_dir: Path | None = None,
                   particles_out: Path | None = None, size_definition: str | None = None,
-                  weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX) -> list[dict]:
+                  weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX,
+                  runtime: str = "torch") -> list[dict]:
     """One row per image. An instance model can also write each image's overlay and instance
     mask and a table of every measured particle (`GrainOutputs`)."""
     outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
-    est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition, weighting, tile)
+    est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition, weighting, tile,
+                                   runtime)
     grains = GrainOutputs(est.meta, **outputs) if est.finds_grains else None
     rows = [row for row, _ in predict_rows(est, files, mm_per_px, grains=grains, what=what, tile=tile)]
     if grains is not None:
@@ -579,7 +585,8 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
                        device: str = "cpu", resume: bool = False, emit=None, progress_stream=None,
                        overlay_dir: Path | None = None, masks_dir: Path | None = None,
                        particles_out: Path | None = None, size_definition: str | None = None,
-                       weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX) -> tuple[int, int]:
+                       weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX,
+                       runtime: str = "torch") -> tuple[int, int]:
     """`psdfactory predict`: each image read, predicted and written (to `emit` and to `out`'s
     partial file) before the next is read, so memory stays flat and an interrupted run keeps
     what it did; `out` appears only when every image is done. → (images, failed). An instance
@@ -588,15 +595,16 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
     lock = OutLock(out) if out is not None else None
     try:
         return _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_stream, outputs,
-                       size_definition, weighting, tile)
+                       size_definition, weighting, tile, runtime)
     finally:
         if lock is not None:
             lock.release()
 
 
 def _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_stream, outputs,
-            size_definition, weighting, tile) -> tuple[int, int]:
-    est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition, weighting, tile)
+            size_definition, weighting, tile, runtime) -> tuple[int, int]:
+    est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition, weighting, tile,
+                                   runtime)
     done = done_rows(out) if (resume and out is not None) else {}
     done = {k: r for k, r in done.items() if all(r.get(c) == what[c] for c in what)}  # rows of another reading: again
     particles = outputs.get("particles_out")
