@@ -581,8 +581,11 @@ def test_export_onnx_maps_and_predict_with_them(tiny, tmp_path):
 def test_the_fast_paths_find_the_same_grains_as_fp32(tiny, tmp_path):
     """Every inference path the benchmark may pick for the instance estimator here (channels-last,
     bf16 where the CPU has it natively, ONNX Runtime fp32) finds the grains fp32 eager finds:
-    F1 ≥ 0.99 between the two instance masks, image by image, on the scenes."""
-    from psdfactory.deploy.benchmark import candidates, onnx_runners
+    F1 ≥ 0.99 between the two instance masks, image by image, on the scenes; a path that does
+    not (bf16's rounding moves marginal grain edges of this barely trained network on some CPUs)
+    is never picked, however fast."""
+    from psdfactory.deploy.benchmark import candidates, choose_fast, grain_agreement, onnx_runners
+    from psdfactory.deploy.quantize import MIN_GRAIN_F1
     from psdfactory.learn import capability
     from psdfactory.learn.evaluate import eval_rows
     from psdfactory.learn.runtime import load_estimator, torch_runner
@@ -607,9 +610,15 @@ def test_the_fast_paths_find_the_same_grains_as_fp32(tiny, tmp_path):
                                                                          path.channels_last)
         fast = est.with_runner(run)
         fast.post = est.post
-        for b, r in zip(base, fast.predict(x, scale), strict=True):
-            m = match_instances(r.grains.mask, b)
-            assert m.n_true == 0 or m.f1 >= 0.99, (key, m.f1)
+        masks = [r.grains.mask for r in fast.predict(x, scale)]
+        f1s = [m.f1 for m in (match_instances(a, b) for a, b in zip(masks, base, strict=True)) if m.n_true]
+        agreement = grain_agreement(masks, base)
+        assert agreement == min(f1s, default=1.0)
+        if agreement < MIN_GRAIN_F1:  # the fastest path of all, and still passed over
+            assert key not in ("fp32", "channels_last", "ort_fp32"), (key, agreement)
+            paths = {"fp32": {"batched": {"images_per_s": 1.0}, "grain_f1_vs_fp32": 1.0},
+                     key: {"batched": {"images_per_s": 100.0}, "r2_change": 0.0, "grain_f1_vs_fp32": agreement}}
+            assert choose_fast(paths) == "fp32"
         checked.append(key)
     assert {"fp32", "channels_last"} <= set(checked)
     assert sum(int(b.max()) for b in base) >= 3  # grains were found to compare (not a vacuous pass)

@@ -4,9 +4,10 @@ Side by side in one run, every inference path worth trying on this machine — P
 eager (the baseline), channels-last fp32, channels-last + bf16 autocast where the CPU has native
 bf16, fp32 and int8 through ONNX Runtime where it is installed, fp16/bf16 autocast on a CUDA GPU
 — each timed (median of repeated runs, at batch 1 and batched) and checked on the test split.
-The fast path is the fastest whose overall R² stays within ``MAX_R2_CHANGE`` of fp32's: chosen
-by measurement on the machine at hand, never by a list of CPU flags (fp32 eager is always a
-candidate, so there is always an answer).
+The fast path is the fastest whose overall R² stays within ``MAX_R2_CHANGE`` of fp32's and, for
+a model that finds grains, whose instance masks match fp32's with F1 ≥ ``MIN_GRAIN_F1`` on every
+test image: chosen by measurement on the machine at hand, never by a list of CPU flags (fp32
+eager is always a candidate, so there is always an answer).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from torch import nn
 from ..learn import capability
 from ..learn.capability import Capabilities
 from ..learn.models import count_parameters
-from .quantize import MAX_R2_CHANGE
+from .quantize import MAX_R2_CHANGE, MIN_GRAIN_F1
 
 logger = logging.getLogger(__name__)
 
@@ -99,11 +100,26 @@ def throughput(step: Callable[[], object], batch: int, seconds: float, repeats: 
 
 
 def choose_fast(paths: dict[str, dict], max_r2_change: float = MAX_R2_CHANGE) -> str:
-    """The fastest path (batched images/s) whose overall R² is within ± the budget of fp32's
-    (a path measured without a dataset has no R² and counts as within); fp32 itself always is."""
-    ok = [k for k, p in paths.items()
-          if k == "fp32" or p.get("r2_change") is None or abs(p["r2_change"]) <= max_r2_change]
+    """The fastest path (batched images/s) whose overall R² is within ± the budget of fp32's and
+    whose grains, where it finds grains, match fp32's (`grain_f1_vs_fp32` ≥ MIN_GRAIN_F1); a path
+    measured without a dataset has neither figure and counts as within; fp32 itself always is."""
+    def within(p: dict) -> bool:
+        r2, f1 = p.get("r2_change"), p.get("grain_f1_vs_fp32")
+        return (r2 is None or abs(r2) <= max_r2_change) and (f1 is None or f1 >= MIN_GRAIN_F1)
+
+    ok = [k for k, p in paths.items() if k == "fp32" or within(p)]
     return max(ok, key=lambda k: paths[k]["batched"]["images_per_s"])
+
+
+def grain_agreement(masks: list, base: list) -> float | None:
+    """The lowest instance-mask F1 (IoU 0.5) of `masks` against `base`, image by image (images
+    where `base` has no grain left out); None where the readings hold no masks."""
+    from ..learn.instances.scoring import match_instances
+
+    if not masks or any(m is None for m in masks + base):
+        return None
+    f1s = [m.f1 for m in (match_instances(a, b) for a, b in zip(masks, base, strict=True)) if m.n_true]
+    return min(f1s, default=1.0)
 
 
 def onnx_runners(est, size: int, keys: list[str], calibration: np.ndarray, tmp: Path) -> dict:
@@ -199,11 +215,18 @@ def benchmark_estimator(est, device: torch.device, results_root: Path | None, da
             if rows:
                 readings, y = rows_readings(e, results_root, rows)
                 res["accuracy"] = regression_metrics(y, predictions(readings))
+                res["masks"] = [getattr(r.grains, "mask", None) for r in readings]
             out["paths"][key] = res
             module.to(memory_format=torch.contiguous_format)
     base = out["paths"]["fp32"]
     for res in out["paths"].values():
         res["r2_change"] = res["accuracy"]["overall"]["r2"] - base["accuracy"]["overall"]["r2"] if rows else None
+    if rows and est.finds_grains:
+        out["min_grain_f1"] = MIN_GRAIN_F1
+        for res in out["paths"].values():
+            res["grain_f1_vs_fp32"] = grain_agreement(res["masks"], base["masks"])
+    for res in out["paths"].values():
+        res.pop("masks", None)
     key = out["fast_key"] = choose_fast(out["paths"])
     fast = out["paths"]["fast"] = dict(out["paths"][key])
     out["stages"] = fast["stages"]
@@ -211,8 +234,9 @@ def benchmark_estimator(est, device: torch.device, results_root: Path | None, da
     out["speedup_batch1"] = fast["batch1"]["images_per_s"] / base["batch1"]["images_per_s"]
     for k, why in out["skipped"].items():
         logger.info(f"  (not tried: {k}: {why})")
-    changes = ", ".join(f"{k} {v['r2_change']:+.4f}" for k, v in out["paths"].items()
-                        if k not in ("fp32", "fast") and v["r2_change"] is not None)
+    changes = ", ".join(f"{k} {v['r2_change']:+.4f}" + (f" (grain F1 vs fp32 {v['grain_f1_vs_fp32']:.3f})"
+                                                         if v.get("grain_f1_vs_fp32") is not None else "")
+                        for k, v in out["paths"].items() if k not in ("fp32", "fast") and v["r2_change"] is not None)
     st = fast["stages"]
     logger.info(f"  fast path: {fast['name']} ({out['speedup_batched']:.2f}× fp32 batched; network "
                 f"{st['network_ms_per_image']:.1f} ms/image, reading {st['read_ms_per_image']:.1f} ms/image)"
