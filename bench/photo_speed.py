@@ -20,6 +20,11 @@ peak overstates predict's by ~12 B per network pixel. With --model, the model's 
     .venv/bin/python bench/photo_speed.py                      # 3 and 12 MP at network scale
     .venv/bin/python bench/photo_speed.py --sizes 3 12 48 --out bench/out/photo_speed.json
     .venv/bin/python bench/photo_speed.py --model results/models/instances/model.pt --true-scale
+    .venv/bin/python bench/photo_speed.py --model results/models/instances/model.pt --true-scale \
+        --runtimes torch auto --repeats 3      # predict's engines side by side, medians of 3
+
+Besides the wall time, each run prints its process's CPU time: on cores shared with other work
+that is the steadier figure, and only runs interleaved in one invocation compare.
 
 Measured on the development machine (2 shared CPU cores, 23 GB; 2026-11-25), untrained network,
 reference maps, at network scale, tiles of 1024 px: see docs/photos.md ("Large photos") for the
@@ -38,6 +43,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from psdfactory.config import PREDICT_RUNTIMES, PREDICT_TILE_PX
 
 REPO = Path(__file__).resolve().parents[1]
 PHOTO = REPO.parent / "shared" / "real" / "barton_creek.jpg"
@@ -95,7 +102,7 @@ def one_photo(a: argparse.Namespace) -> dict:
             return super().read(maps, mm_per_px)
 
     if a.model:
-        est = predict.load_predictor(Path(a.model))
+        est = predict.load_predictor(Path(a.model), runtime=a.runtime)
         if ref is not None:
             est.__class__ = ReferenceMaps
     else:
@@ -117,7 +124,12 @@ def one_photo(a: argparse.Namespace) -> dict:
                 timing[key] += time.perf_counter() - t
         return run
 
-    est.outputs, est.read = timed("network_s", outputs), timed("post_s", read)
+    def read_noting_size(maps, mm_per_px):  # the size the network read the photo at (predict's automatic scale)
+        timing["read_hw"] = list(maps.shape[-2:])
+        return read(maps, mm_per_px)
+
+    est.auto_scale = a.auto_scale
+    est.outputs, est.read = timed("network_s", outputs), timed("post_s", read_noting_size)
     mm = a.mm_per_px if a.mm_per_px else predict.network_scale(est.meta)
     photo = Path(a.photo)
     with tempfile.TemporaryDirectory() as tmp:
@@ -125,9 +137,9 @@ def one_photo(a: argparse.Namespace) -> dict:
                                       particles_out=Path(tmp) / "grains.csv")
         grains.name_outputs([photo])
         base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         row = predict.predict_one(est, photo, mm, grains, tile=a.tile)
-        seconds = time.perf_counter() - t0
+        seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
         grains.finish()
         n = grains.n_particles
     if row["error"]:
@@ -139,11 +151,60 @@ def one_photo(a: argparse.Namespace) -> dict:
     scale = mm / predict.network_scale(est.meta)
     nh, nw = predict.target_size(h, w, est.meta, mm)
     return {"photo": photo.name, "photo_mp": w * h / 1e6, "network_mp": nh * nw / 1e6, "network_scale_factor": scale,
+            "read_scale": timing["read_hw"][0] / nh, "read_mp": timing["read_hw"][0] * timing["read_hw"][1] / 1e6,
             "tiles": len(predict.tile_spans(nh, a.tile, est.tile_margin_px))
             * len(predict.tile_spans(nw, a.tile, est.tile_margin_px)),
-            "seconds": seconds, "photo_mp_per_s": w * h / 1e6 / seconds, **timing,
+            "seconds": seconds, "cpu_s": cpu, "photo_mp_per_s": w * h / 1e6 / seconds, **timing,
+            "runtime": getattr(est, "engine", "torch"),
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "rss_before_mb": base_rss,
             "grains": n, "d50_mm": row["d50_mm"], "threads": torch.get_num_threads()}
+
+
+def run_one(a: argparse.Namespace, photo: Path, mm: float, maps: Path | None, runtime: str) -> dict | None:
+    """One photo through predict_one in a fresh process; its row, printed."""
+    cmd = [sys.executable, __file__, "--one", "1", "--photo", str(photo), "--tile", str(a.tile), "--runtime", runtime,
+           "--auto-scale" if a.auto_scale else "--no-auto-scale"]
+    cmd += ["--model", a.model] if a.model else []
+    cmd += ["--maps", str(maps)] if maps else []
+    cmd += ["--mm-per-px", str(mm)] if a.true_scale else []
+    env = dict(os.environ, PYTHONPATH=str(REPO / "src"))
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if r.returncode:
+        print(f"{photo.name}: failed ({r.returncode}): {r.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
+        return None
+    row = json.loads(r.stdout.strip().splitlines()[-1])
+    row["bytes_per_network_px"] = (row["peak_rss_mb"] - row["rss_before_mb"]) * 2**20 / (row["network_mp"] * 1e6)
+    print(f"{row['photo']:<26} {row['photo_mp']:5.1f} MP photo, {row['network_mp']:5.1f} MP at the network's "
+          f"scale in {row['tiles']:2d} tile(s), read at {row['read_scale']:.2f}x it, {row['runtime']}: "
+          f"{row['seconds']:6.1f} s = "
+          f"{row['photo_mp_per_s']:.3f} MP/s, CPU {row['cpu_s']:.1f} s (network {row['network_s']:.1f} s, "
+          f"post-processing {row['post_s']:.1f} s), peak RSS {row['peak_rss_mb']:,.0f} MB "
+          f"({row['bytes_per_network_px']:.0f} B per network px above the {row['rss_before_mb']:,.0f} MB before), "
+          f"{row['grains']} grains, {row['threads']} threads", flush=True)
+    row["asked"] = runtime
+    return row
+
+
+def print_medians(rows: list[dict], runtimes: list[str]) -> None:
+    """Per photo and runtime: the medians of the runs, and the ratio to the first runtime's."""
+    import statistics
+
+    print(f"\nmedians ({len(rows)} runs):")
+    print(f"{'photo':<26} {'runtime':<14} {'runs':>4} {'s':>7} {'MP/s':>7} {'CPU s':>7} {'network s':>9} "
+          f"{'post s':>7}  speed vs {runtimes[0]}")
+    for photo in dict.fromkeys(r["photo"] for r in rows):
+        base = None
+        for runtime in runtimes:
+            rs = [r for r in rows if r["photo"] == photo and r["asked"] == runtime]
+            if not rs:
+                continue
+            med = {k: statistics.median(r[k] for r in rs) for k in ("seconds", "photo_mp_per_s", "cpu_s",
+                                                                     "network_s", "post_s")}
+            base = base or med
+            engine = "/".join(dict.fromkeys(r["runtime"] for r in rs))
+            print(f"{photo:<26} {runtime + ' (' + engine + ')':<14} {len(rs):>4} {med['seconds']:7.2f} "
+                  f"{med['photo_mp_per_s']:7.3f} {med['cpu_s']:7.2f} {med['network_s']:9.2f} {med['post_s']:7.2f}  "
+                  f"{base['seconds'] / med['seconds']:.2f}x", flush=True)
 
 
 def main() -> None:
@@ -153,16 +214,21 @@ def main() -> None:
     ap.add_argument("--reference-maps", action="store_true", help="with --model: read the reference's maps too")
     ap.add_argument("--true-scale", action="store_true", help="give each photo its own scale, not the network's")
     ap.add_argument("--tile", type=int, default=None, help="tile side at the network's scale (default: predict's)")
+    ap.add_argument("--runtimes", nargs="+", choices=PREDICT_RUNTIMES, default=["torch"],
+                    help="with --model: predict's --runtime, each timed on every photo, interleaved (default: torch)")
+    ap.add_argument("--auto-scale", action=argparse.BooleanOptionalAction, default=True,
+                    help="predict's automatic scale (photos whose grains look larger than the training grains read "
+                    "coarser; default: on, as predict)")
+    ap.add_argument("--repeats", type=int, default=1, help="runs of each photo and runtime; medians are printed")
     ap.add_argument("--workdir", help="where the photos are made (default: a temporary folder)")
     ap.add_argument("--out", help="also write the rows to this JSON file")
     ap.add_argument("--one", help=argparse.SUPPRESS)  # the child: one photo
     ap.add_argument("--photo", help=argparse.SUPPRESS)
     ap.add_argument("--maps", help=argparse.SUPPRESS)
     ap.add_argument("--mm-per-px", type=float, help=argparse.SUPPRESS)
+    ap.add_argument("--runtime", default="torch", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.tile is None:
-        from psdfactory.config import PREDICT_TILE_PX
-
         a.tile = PREDICT_TILE_PX
     if a.one:
         print(json.dumps(one_photo(a)))
@@ -170,27 +236,17 @@ def main() -> None:
     work = Path(a.workdir or tempfile.mkdtemp(prefix="photo_speed-"))
     work.mkdir(parents=True, exist_ok=True)
     maps = None if (a.model and not a.reference_maps) else reference_maps(REFERENCE_MASK, work / "reference_maps.npy")
+    runtimes = a.runtimes if a.model else ["torch"]
     rows = []
     for mp in a.sizes:
         photo, mm = make_photo(PHOTO, mp, work / f"barton_creek_{mp:g}mp.jpg")
-        cmd = [sys.executable, __file__, "--one", "1", "--photo", str(photo), "--tile", str(a.tile)]
-        cmd += ["--model", a.model] if a.model else []
-        cmd += ["--maps", str(maps)] if maps else []
-        cmd += ["--mm-per-px", str(mm)] if a.true_scale else []
-        env = dict(os.environ, PYTHONPATH=str(REPO / "src"))
-        r = subprocess.run(cmd, capture_output=True, text=True, env=env)
-        if r.returncode:
-            print(f"{photo.name}: failed ({r.returncode}): {r.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
-            continue
-        row = json.loads(r.stdout.strip().splitlines()[-1])
-        row["bytes_per_network_px"] = (row["peak_rss_mb"] - row["rss_before_mb"]) * 2**20 / (row["network_mp"] * 1e6)
-        rows.append(row)
-        print(f"{row['photo']:<26} {row['photo_mp']:5.1f} MP photo, {row['network_mp']:5.1f} MP at the network's "
-              f"scale in {row['tiles']:2d} tile(s): {row['seconds']:6.1f} s = {row['photo_mp_per_s']:.3f} MP/s "
-              f"(network {row['network_s']:.1f} s, post-processing {row['post_s']:.1f} s), peak RSS "
-              f"{row['peak_rss_mb']:,.0f} MB ({row['bytes_per_network_px']:.0f} B per network px above the "
-              f"{row['rss_before_mb']:,.0f} MB before), {row['grains']} grains, "
-              f"{row['threads']} threads", flush=True)
+        for _ in range(a.repeats):
+            for runtime in runtimes:  # interleaved: every runtime sees the same load
+                row = run_one(a, photo, mm, maps, runtime)
+                if row is not None:
+                    rows.append(row)
+    if len(rows) > len(a.sizes):
+        print_medians(rows, runtimes)
     if a.out:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         Path(a.out).write_text(json.dumps(rows, indent=1) + "\n")

@@ -21,7 +21,7 @@ from psdfactory import PsdError
 from psdfactory.deploy import predict
 from psdfactory.deploy.predict import (
     PARTICLE_COLUMNS,
-    predict_image,
+    image_outputs,
     prepare,
     tile_spans,
     tiled_outputs,
@@ -88,6 +88,11 @@ def grain_bed(h: int, w: int, n: int, seed: int = 0) -> tuple[np.ndarray, np.nda
         mask[(rr - y) ** 2 + (cc - x) ** 2 <= r * r] = k
     greys = np.concatenate([[0], rng.permutation(np.linspace(110, 250, n)).round()])
     return np.repeat(greys[mask][:, :, None], 3, axis=2).astype(np.uint8), mask
+
+
+def predict_image(est, x: torch.Tensor, mm_per_px: float, tile: int, where: str = ""):
+    """The estimator's reading of one image at the network's scale, tiled as predict tiles it."""
+    return est.read(image_outputs(est, x, tile, where), [mm_per_px])[0]
 
 
 def as_input(image: np.ndarray) -> torch.Tensor:

@@ -255,7 +255,7 @@ def cmd_predict(a: argparse.Namespace) -> int:
                                        masks_dir=Path(a.masks) if a.masks else None,
                                        particles_out=Path(a.particles) if a.particles else None,
                                        size_definition=a.size_definition, weighting=a.weighting, tile=a.tile,
-                                       runtime=a.runtime)
+                                       runtime=a.runtime, auto_scale=a.auto_scale)
     except KeyboardInterrupt:
         if out is not None:
             logger.error(f"psdfactory predict: interrupted; the rows done so far are in {partial_path(out)} "
@@ -541,6 +541,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="instance models: run an image larger than this at the network's scale in overlapping "
                    "tiles of this side (px, a multiple of 32), stitched into one result: memory for the network "
                    f"stays that of one tile (default: {PREDICT_TILE_PX})")
+    p.add_argument("--auto-scale", action=argparse.BooleanOptionalAction, default=True,
+                   help="instance models, with --mm-per-px: where a photo's grains look larger than the grains the "
+                   "model trained on (cobbles under a model of gravel), read it at the coarser scale that shows them "
+                   "at that size, as a first look at a quarter of the model's scale finds; the log says when. "
+                   "Grains larger than the network sees at once are otherwise cut along their texture "
+                   "(default: on; --no-auto-scale: always at the model's scale)")
     p.add_argument("images", nargs="+", metavar="IMAGE",
                    help="image files (.png, .jpg, .tif, .bmp, .webp) and/or folders of them, subfolders included")
     p.set_defaults(func=cmd_predict)

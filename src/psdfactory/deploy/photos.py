@@ -42,17 +42,7 @@ from ..learn.calibration import apply_calibration
 from ..learn.estimator import Estimator, Reading, reading_of
 from ..photoset import Photo, PhotoSet
 from ..psd import NAMES, weighted_percentiles
-from .predict import (
-    DEFAULT_TILE_PX,
-    MAX_NETWORK_PIXELS,
-    MAX_TILED_PIXELS,
-    load_predictor,
-    network_mm_per_px,
-    network_scale,
-    predict_image,
-    prepare,
-    target_size,
-)
+from .predict import DEFAULT_TILE_PX, load_predictor, network_scale, read_at_scale, target_size
 
 logger = logging.getLogger(__name__)
 
@@ -281,17 +271,15 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
             raise PsdError(f"{photo.path}: at {arch}'s scale ({network_scale(meta):.3f} mm/px) this photo is "
                            f"{net_hw[1]} x {net_hw[0]} px, smaller than the {meta['input_size']} px the model reads; "
                            f"it needs photos of at least {meta['input_size'] * network_scale(meta):.0f} mm a side")
-        # as predict reads a photo: at the model's scale, tile by tile where it is larger than a tile
+        # as predict reads a photo: at the model's scale (or coarser, where its grains look larger than the training
+        # grains: predict.choose_scale), tile by tile where it is larger than a tile
         image, size_hw = read_photo(photo.path, need=lambda h, w, p=photo: target_size(h, w, meta, p.mm_per_px))
-        tiles = est.tile_margin_px is not None
-        x = prepare(image, meta, photo.mm_per_px, size_hw, MAX_TILED_PIXELS if tiles else MAX_NETWORK_PIXELS)
-        found = predict_image(est, x, network_mm_per_px(size_hw, x.shape[-2:], meta, photo.mm_per_px),
-                              DEFAULT_TILE_PX, str(photo.path))
+        found, network_hw = read_at_scale(est, image, size_hw, photo.mm_per_px, DEFAULT_TILE_PX, str(photo.path))
         # its own reading as predict gives it (a calibrated model's correction applied)
         reading = Reading(apply_calibration(meta, own, found.d_mm), grains=found.grains)
         ref_mask = read_mask(photo.mask, size_hw) if photo.mask is not None else None
         r = scorer.add(photo, reading, ref_mask)
-        r["network_hw"] = [int(x.shape[-2]), int(x.shape[-1])]
+        r["network_hw"] = [int(v) for v in network_hw]
         r["mm_per_px"] = photo.mm_per_px
         found = reading.grains.mask if est.finds_grains else None
         r["overlay"] = f"{photo.stem}.png"

@@ -142,15 +142,26 @@ MAX_NETWORK_PIXELS = 4096 * 4096  # the largest input a network is run on in one
 DEFAULT_TILE_PX = PREDICT_TILE_PX  # a tile's side at the network's scale (predict --tile)
 MAX_TILED_PIXELS = 8192 * 8192
 
+# Grains that look larger than those a model trained on are cut along their texture: the network sees a patch of a
+# grain, not the grain. Like Cellpose reading an image at its cells' diameter, predict reads such a photo at a
+# coarser scale (`choose_scale`): a probe at AUTO_SCALE_PROBE of the model's scale says how large the grains look
+# (Estimator.apparent_grain_px); where that is more than on any of the model's validation images (meta
+# grain_px_max), the photo is read where they look the validation images' median size (meta grain_px), once checked
+# there. Never finer than the model's scale, never with the photo's shorter side under AUTO_SCALE_MIN_PX; a photo
+# whose grains look as the training images' do is read at the model's scale, as before.
+AUTO_SCALE_PROBE = 0.25
+AUTO_SCALE_MIN_PX = 64
+AUTO_SCALE_REREAD = 1.1  # the check moves the scale by more than this factor: read the photo again there
 
-def target_size(h: int, w: int, meta: dict, mm_per_px: float | None) -> tuple[int, int]:
+
+def target_size(h: int, w: int, meta: dict, mm_per_px: float | None, scale: float = 1.0) -> tuple[int, int]:
     """(height, width) an image of h x w px is resized to before the network: the model's input
     size (an image of the training images' size, `check_field_of_view`), or with `mm_per_px` the
-    model's scale, the aspect ratio kept."""
+    model's scale times `scale` (< 1: coarser), the aspect ratio kept."""
     if mm_per_px is None:
         return meta["input_size"], meta["input_size"]
-    scale = mm_per_px / network_scale(meta)
-    return max(32, round(h * scale)), max(32, round(w * scale))
+    k = scale * mm_per_px / network_scale(meta)
+    return max(32, round(h * k)), max(32, round(w * k))
 
 
 def check_field_of_view(path: Path | str, size_hw: tuple[int, int], meta: dict) -> None:
@@ -176,11 +187,13 @@ def network_mm_per_px(size_hw: tuple[int, int], net_hw: tuple[int, int], meta: d
 
 
 def prepare(image: np.ndarray, meta: dict, mm_per_px: float | None,
-            size_hw: tuple[int, int] | None = None, max_pixels: int = MAX_NETWORK_PIXELS) -> torch.Tensor:
-    """uint8 image → uint8 1x3xHxW tensor at the scale the network was trained on. `size_hw`: the
-    image's full size when `image` was decoded reduced (read_photo), so the scale stays exact.
-    `max_pixels`: the most the network takes (more for an estimator that tiles)."""
-    size = target_size(*(size_hw or image.shape[:2]), meta, mm_per_px)
+            size_hw: tuple[int, int] | None = None, max_pixels: int = MAX_NETWORK_PIXELS,
+            scale: float = 1.0) -> torch.Tensor:
+    """uint8 image → uint8 1x3xHxW tensor at the scale the network was trained on (times `scale`,
+    with `mm_per_px`). `size_hw`: the image's full size when `image` was decoded reduced
+    (read_photo), so the scale stays exact. `max_pixels`: the most the network takes (more for an
+    estimator that tiles)."""
+    size = target_size(*(size_hw or image.shape[:2]), meta, mm_per_px, scale)
     if size[0] * size[1] > max_pixels:
         raise PsdError(f"at the model's scale this image is {size[1]} x {size[0]} px, more than the "
                        f"{max_pixels:,} px the network is run on: crop it, or check --mm-per-px")
@@ -246,17 +259,76 @@ def tiled_outputs(est: Estimator, x: torch.Tensor, tile: int, where: str = "") -
     return maps
 
 
-def predict_image(est: Estimator, x: torch.Tensor, mm_per_px: float, tile: int | None = DEFAULT_TILE_PX,
-                  where: str = ""):
-    """The estimator's reading of one uint8 1×3×H×W image at the network's scale: in one pass,
+def image_outputs(est: Estimator, x: torch.Tensor, tile: int | None = DEFAULT_TILE_PX, where: str = "") -> np.ndarray:
+    """The estimator's outputs for one uint8 1×3×H×W image at the network's scale: in one pass,
     or, for an estimator whose outputs are maps (`tile_margin_px`) and an image larger than
-    `tile` px on a side, its maps computed tile by tile, stitched, and read once (the watershed
-    and the measurement run on the whole image: no grain is cut at a tile's edge or found twice)."""
+    `tile` px on a side, its maps computed tile by tile and stitched (`tiled_outputs`)."""
     h, w = x.shape[-2:]
     if est.tile_margin_px is None or tile is None or (h <= tile and w <= tile):
-        return est.predict(x, mm_per_px)[0]
+        return est.outputs(x)
     check_tile(tile, est.tile_margin_px)
-    return est.read(tiled_outputs(est, x, tile, where), [mm_per_px])[0]
+    return tiled_outputs(est, x, tile, where)
+
+
+def choose_scale(est: Estimator, shorter_side: int, outputs_at, where: str = "") -> float:
+    """The factor of the model's scale to read a photo at: 1, or less where its grains look larger
+    than the model's validation grains (see AUTO_SCALE_PROBE). `shorter_side`: the photo's shorter
+    side in px at the model's scale; `outputs_at(scale)` → the estimator's outputs of the photo at
+    that factor. 1 without the estimator's `auto_scale`, the meta's grain sizes or an apparent one."""
+    trained, most = est.meta.get("grain_px"), est.meta.get("grain_px_max")
+    if not est.auto_scale or trained is None or most is None:
+        return 1.0
+    lowest = AUTO_SCALE_MIN_PX / shorter_side
+    probe = max(AUTO_SCALE_PROBE, lowest)
+    if probe >= 1.0:
+        return 1.0  # too few pixels to look coarser
+
+    def looks(scale: float) -> float | None:  # the grains' apparent size at the model's scale (px)
+        seen = est.apparent_grain_px(outputs_at(scale)[0])
+        return None if seen is None else seen / scale
+
+    def near(new: float, old: float) -> float:  # the scale looked at already, where the new one is close to it
+        return old if abs(math.log(new / old)) <= math.log(AUTO_SCALE_REREAD) else new
+
+    seen = looks(probe)
+    if seen is None or seen <= most:
+        return 1.0
+    scale = near(max(min(1.0, trained / seen), lowest), probe)
+    again = looks(scale)  # seen nearer the training size, the grains are sized better: read where that says
+    if again is not None:
+        if again <= most:
+            return 1.0  # the probe misjudged them: at the model's scale they look as its validation grains do
+        scale = near(max(min(1.0, trained / again), lowest), scale)
+    if scale == 1.0:
+        return 1.0
+    logger.info(f"{where}: its grains look {again or seen:.0f} px at the model's scale, larger than on any of the "
+                f"model's validation images (at most {most:.0f} px): read at {scale:.3g} x the model's scale, where "
+                f"they look {trained:.0f} px as those do at the median (predict --no-auto-scale: at its scale)")
+    return scale
+
+
+def read_at_scale(est: Estimator, image: np.ndarray, size_hw: tuple[int, int], mm_per_px: float | None,
+                  tile: int | None = DEFAULT_TILE_PX, where: str = "") -> tuple[object, tuple[int, int]]:
+    """The estimator's reading of a decoded photo (`read_photo`: `image`, its full size `size_hw`)
+    at the model's scale, or at the coarser one `choose_scale` picks (with `mm_per_px` only: the
+    scale of an image given without it is the training images'), and the (height, width) the
+    network read it at; the outputs of the last scale looked at are reused when it is the one picked."""
+    meta = est.meta
+    max_px = MAX_TILED_PIXELS if (est.tile_margin_px is not None and tile is not None) else MAX_NETWORK_PIXELS
+    last: dict = {}
+
+    def outputs_at(scale: float) -> np.ndarray:
+        if last.get("scale") != scale:
+            last.clear()  # one image's outputs in memory at a time
+            x = prepare(image, meta, mm_per_px, size_hw, max_px, scale)
+            last.update(scale=scale, hw=tuple(x.shape[-2:]), outputs=image_outputs(est, x, tile, where))
+        return last["outputs"]
+
+    scale = 1.0
+    if mm_per_px is not None:
+        scale = choose_scale(est, min(target_size(*size_hw, meta, mm_per_px)), outputs_at, where)
+    outputs = outputs_at(scale)
+    return est.read(outputs, [network_mm_per_px(size_hw, last["hw"], meta, mm_per_px)])[0], last["hw"]
 
 
 def load_predictor(model_path: Path, device: str = "cpu", runtime: str = "torch") -> Estimator:
@@ -336,7 +408,8 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
     """One image → its row; a bad image gives a row whose `error` names the file and the reason.
     Without `mm_per_px` only an image of the training images' size is taken (at their scale);
     any other is refused before it is decoded. An image larger than `tile` px at the network's
-    scale is run tile by tile (`predict_image`). With `grains` (an estimator that finds grains),
+    scale is run tile by tile (`image_outputs`), at a coarser scale where its grains look larger than
+    the training grains (`read_at_scale`). With `grains` (an estimator that finds grains),
     its overlay, mask and particle rows are written. `what`: the reading (``reading``)."""
     meta = est.meta
     what = what or reading(meta, None)
@@ -348,10 +421,7 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
 
     try:
         image, size_hw = read_photo(path, need=network_size)
-        tiles = est.tile_margin_px is not None and tile is not None
-        x = prepare(image, meta, mm_per_px, size_hw, MAX_TILED_PIXELS if tiles else MAX_NETWORK_PIXELS)
-        found = predict_image(est, x, network_mm_per_px(size_hw, x.shape[-2:], meta, mm_per_px), tile, str(path))
-        del x
+        found, _ = read_at_scale(est, image, size_hw, mm_per_px, tile, str(path))
         if grains is not None:
             grains.write(path, image, size_hw, found.grains)
         d = est.in_definition(found, what["size_definition"], what["weighting"], str(path))
@@ -381,12 +451,14 @@ def predict_rows(est: Estimator, files: list[Path], mm_per_px: float | None = No
 
 def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, device: str, outputs: dict | None = None,
                 size_definition: str | None = None, weighting: str | None = None,
-                tile: int | None = DEFAULT_TILE_PX, runtime: str = "torch"):
+                tile: int | None = DEFAULT_TILE_PX, runtime: str = "torch", auto_scale: bool = True):
     """The model (its runner and meta, described in the log), the image files to predict and what
     the d-values will be of (``reading``). `outputs`: an instance model's --overlay / --masks /
     --particles (refused for the others); `tile`: checked against the model's margin; `runtime`:
-    the engine for a model.pt (`fastpath.RUNTIMES`)."""
+    the engine for a model.pt (`fastpath.RUNTIMES`); `auto_scale`: photos whose grains look larger
+    than the training grains read at a coarser scale (`choose_scale`)."""
     est = load_predictor(model_path, device, runtime)
+    est.auto_scale = auto_scale
     meta = est.meta
     if not est.finds_grains and any((outputs or {}).values()):
         raise PsdError(f"--overlay, --masks and --particles need a model that finds grains (e.g. the instance "
@@ -399,6 +471,9 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
     for line in describe_model(meta, model_path, mm_per_px, est.tile_margin_px, tile):
         logger.info(line)
     logger.info(f"d10/d50/d90 of the particles' {what['size_definition']} size, {what['weighting']}-weighted")
+    if auto_scale and est.finds_grains and mm_per_px is not None and "grain_px" not in meta:
+        logger.info("this model does not record how large its training grains look (trained by an older "
+                    "psdfactory): photos are read at its scale only; train it again for the automatic scale")
     if (note := calibration_note(meta, what)) is not None:  # refuses a reading the calibration is not of
         logger.info(note)
     return est, files, what
@@ -408,12 +483,12 @@ def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None =
                   overlay_dir: Path | None = None, masks_dir: Path | None = None,
                   particles_out: Path | None = None, size_definition: str | None = None,
                   weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX,
-                  runtime: str = "torch") -> list[dict]:
+                  runtime: str = "torch", auto_scale: bool = True) -> list[dict]:
     """One row per image. An instance model can also write each image's overlay and instance
     mask and a table of every measured particle (`GrainOutputs`)."""
     outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
     est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition, weighting, tile,
-                                   runtime)
+                                   runtime, auto_scale)
     grains = GrainOutputs(est.meta, **outputs) if est.finds_grains else None
     rows = [row for row, _ in predict_rows(est, files, mm_per_px, grains=grains, what=what, tile=tile)]
     if grains is not None:
@@ -586,7 +661,7 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
                        overlay_dir: Path | None = None, masks_dir: Path | None = None,
                        particles_out: Path | None = None, size_definition: str | None = None,
                        weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX,
-                       runtime: str = "torch") -> tuple[int, int]:
+                       runtime: str = "torch", auto_scale: bool = True) -> tuple[int, int]:
     """`psdfactory predict`: each image read, predicted and written (to `emit` and to `out`'s
     partial file) before the next is read, so memory stays flat and an interrupted run keeps
     what it did; `out` appears only when every image is done. → (images, failed). An instance
@@ -595,16 +670,16 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
     lock = OutLock(out) if out is not None else None
     try:
         return _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_stream, outputs,
-                       size_definition, weighting, tile, runtime)
+                       size_definition, weighting, tile, runtime, auto_scale)
     finally:
         if lock is not None:
             lock.release()
 
 
 def _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_stream, outputs,
-            size_definition, weighting, tile, runtime) -> tuple[int, int]:
+            size_definition, weighting, tile, runtime, auto_scale) -> tuple[int, int]:
     est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition, weighting, tile,
-                                   runtime)
+                                   runtime, auto_scale)
     done = done_rows(out) if (resume and out is not None) else {}
     done = {k: r for k, r in done.items() if all(r.get(c) == what[c] for c in what)}  # rows of another reading: again
     particles = outputs.get("particles_out")

@@ -84,6 +84,9 @@ class Estimator:
     int8: ClassVar[bool] = True  # export and the benchmark may quantise it to int8
     output_doc: ClassVar[str] = "float32 Nx3: d10, d50, d90 in mm"
     output_name: ClassVar[str] = "d_mm"  # the ONNX output's name
+    # predict reads a photo whose grains look larger than the training grains (apparent_grain_px) at a coarser
+    # scale; False (predict --no-auto-scale): always at the model's scale
+    auto_scale: bool = True
 
     def __init__(self, meta: dict, run: Callable[[torch.Tensor], np.ndarray], net: nn.Module | None = None):
         self.meta = meta
@@ -145,6 +148,14 @@ class Estimator:
 
     def scorer(self, results_root: Path, dataset: str) -> DatasetScorer:
         return DatasetScorer()
+
+    def apparent_grain_px(self, outputs: np.ndarray) -> float | None:
+        """How large, in px, the grains look in one image's `outputs` (its area-weighted median
+        size), or None where the estimator cannot say (it finds no grain, or it is not one that
+        sizes grains). With the meta's `grain_px` and `grain_px_max` (the median and the largest of
+        the same figure on its validation images), predict reads a photo whose grains look larger
+        than the largest at the coarser scale where they look the median's size."""
+        return None
 
     # ---- shared ------------------------------------------------------------------------------
 

@@ -30,6 +30,9 @@ from .watershed import DEFAULT_POSTPROCESS, postprocess
 
 logger = logging.getLogger(__name__)
 
+MIN_GRAIN_PIXELS = 64  # fewer pixels taken for grains than this: no apparent grain size (apparent_grain_px)
+
+
 @dataclass
 class InstanceResult:
     """What the estimator found in one image."""
@@ -151,6 +154,18 @@ class InstanceEstimator(Estimator):
 
     def scorer(self, results_root: Path, dataset: str) -> DatasetScorer:
         return SegmentationScorer(self, results_root, dataset)
+
+    def apparent_grain_px(self, outputs: np.ndarray) -> float | None:
+        """The median of the size map (decoded to px) over the pixels the network takes for grains:
+        an area-weighted median grain size. None without a size map or with under
+        `MIN_GRAIN_PIXELS` grain pixels."""
+        size_px = size_map_px(outputs)
+        if size_px is None:
+            return None
+        grain = outputs[MAPS.index("foreground")] > self.post["threshold"]
+        if grain.sum() < MIN_GRAIN_PIXELS:
+            return None
+        return float(np.median(size_px[grain]))
 
     # ---- its own steps -----------------------------------------------------------------------
 
@@ -288,6 +303,9 @@ def readout_problems(meta: dict) -> list[str]:
     maps = meta.get("maps", list(MASK_MAPS))
     if not (isinstance(maps, list) and tuple(maps) in (MASK_MAPS, MAPS)):
         problems.append(f"maps must be {list(MASK_MAPS)} or {list(MAPS)}")
+    sizes = [meta.get(k) for k in ("grain_px", "grain_px_max")]
+    if any(v is not None for v in sizes) and not (all(num(v) and v > 0 for v in sizes) and sizes[0] <= sizes[1]):
+        problems.append("grain_px and grain_px_max must be positive numbers (px), grain_px <= grain_px_max")
     if meta.get("tta", "none") not in TTA_VIEWS:
         problems.append(f"tta must be one of {', '.join(TTA_VIEWS)}")
     if meta.get("sieve_method") not in SIEVE_METHODS:

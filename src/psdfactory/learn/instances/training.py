@@ -177,6 +177,10 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     val_masks = [read_png(Path(results_root) / r["mask_path"]) for r in val_rows]
     post, val_f1 = pick_postprocess(val_maps, val_masks)
     est.post = post
+    # how large the grains look to the network on images it did not train on (predict's automatic scale)
+    seen = [g for g in map(est.apparent_grain_px, val_maps) if g is not None]
+    grain_px = {"grain_px": round(float(np.median(seen)), 3), "grain_px_max": round(float(np.max(seen)), 3)} \
+        if seen else {}
     train_maps = est.all_maps(x_train)
     train_res = [est.analyse_maps(mp, float(r["mm_per_px"])) for mp, r in zip(train_maps, train_rows, strict=True)]
     val_res = [est.analyse_maps(mp, float(r["mm_per_px"])) for mp, r in zip(val_maps, val_rows, strict=True)]
@@ -197,6 +201,10 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     logger.info(f"read-out ({settings.readout}) fitted on {len(train_rows)} training + {len(val_rows)} validation "
                 f"scenes (ridge {readout['alpha']:g}): cross-validated R² {cv}; validation R² calibrated (in the "
                 f"fit) {r2s['cal']}, raw {r2s['raw']} ({time.perf_counter() - t0:.0f} s)")
+    if grain_px:
+        logger.info(f"the validation images' grains look {grain_px['grain_px']:.1f} px (median over the images of the "
+                    f"size map's area-weighted median), at most {grain_px['grain_px_max']:.1f} px: predict reads a "
+                    "photo whose grains look larger than that where they look the median's size")
 
     res_px = int(np.median([r["resolution"] for r in train_rows]))
     summary = {
@@ -213,6 +221,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         "weights": weights_used,
         "maps": list(MAPS),
         "postprocess": post,
+        **grain_px,
         "sieve_method": settings.sieve_method,
         "readout_features": settings.readout,
         "tta": settings.tta,

@@ -1,0 +1,212 @@
+"""predict's automatic scale (deploy.predict.choose_scale / read_at_scale): a photo whose grains
+look larger than the model's training grains is read at the coarser scale that shows them at
+that size, and measured in mm at the scale it was read at. No training: a stand-in estimator
+whose apparent grain size is known, and the instance estimator on a synthetic "network" whose
+size map gives each blob's diameter."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pytest
+from PIL import Image
+from scipy import ndimage
+
+from psdfactory.deploy import predict
+from psdfactory.deploy.predict import AUTO_SCALE_MIN_PX, AUTO_SCALE_PROBE, choose_scale
+from psdfactory.learn.instances.estimator import InstanceEstimator, readout_problems
+from psdfactory.learn.instances.targets import encode_size
+
+from .test_photos import META, NET_MM, local_maps, read_csv
+
+pytest.importorskip("skimage")
+
+GRAIN_PX, GRAIN_PX_MAX = 16.0, 24.0  # how large the stand-in models' validation grains look: median, largest
+
+
+class Looks:
+    """A stand-in estimator: at a factor s of the model's scale its grains look `true_px * s`, up
+    to `most_px` (a network sees no grain larger than its receptive field); `outputs_at` records
+    the factors asked."""
+
+    def __init__(self, true_px: float | None, meta: dict | None = None, most_px: float = math.inf):
+        self.true_px, self.most_px = true_px, most_px
+        self.meta = {"grain_px": GRAIN_PX, "grain_px_max": GRAIN_PX_MAX} if meta is None else meta
+        self.auto_scale = True
+        self.asked: list[float] = []
+
+    def apparent_grain_px(self, outputs):
+        return None if outputs is None else float(outputs)
+
+    def outputs_at(self, scale: float):
+        self.asked.append(scale)
+        return [None if self.true_px is None else min(self.true_px * scale, self.most_px)]
+
+    def choose(self, shorter_side: int = 1024) -> float:
+        return choose_scale(self, shorter_side, self.outputs_at, "photo.jpg")
+
+
+def test_grains_as_large_as_the_validation_grains_are_read_at_the_model_scale():
+    for true_px in (GRAIN_PX, GRAIN_PX / 3, GRAIN_PX_MAX):
+        looks = Looks(true_px)
+        assert looks.choose() == 1.0
+        assert looks.asked == [AUTO_SCALE_PROBE]  # one look at a quarter of the scale, no second
+
+
+def test_larger_grains_are_read_where_they_look_as_large_as_the_median_validation_grain(caplog):
+    with caplog.at_level(logging.INFO, logger="psdfactory.deploy.predict"):
+        for true_px in (1.1 * GRAIN_PX_MAX, 4 * GRAIN_PX, 6 * GRAIN_PX):
+            looks = Looks(true_px)
+            assert looks.choose() == pytest.approx(GRAIN_PX / true_px)
+            assert looks.asked[0] == AUTO_SCALE_PROBE and looks.asked[-1] == pytest.approx(GRAIN_PX / true_px)
+    assert "photo.jpg: its grains look 96 px at the model's scale, larger than on any of the model's validation " \
+           "images (at most 24 px): read at 0.167 x the model's scale, where they look 16 px" in caplog.text
+
+
+def test_never_coarser_than_the_smallest_side_allows():
+    looks = Looks(100 * GRAIN_PX)
+    assert looks.choose(shorter_side=512) == pytest.approx(AUTO_SCALE_MIN_PX / 512)
+    looks = Looks(100 * GRAIN_PX)  # a photo this small cannot be looked at coarser at all
+    assert looks.choose(shorter_side=AUTO_SCALE_MIN_PX) == 1.0 and looks.asked == []
+
+
+def test_the_second_look_corrects_the_probe():
+    """Grains of 256 px under a network that sees none larger than 24 px: the probe (at 0.25) says
+    they look 96 px, so 1/6; the look there says 144 px: read again at 1/9, nearer their size."""
+    looks = Looks(16 * GRAIN_PX, most_px=24)
+    assert looks.choose() == pytest.approx(GRAIN_PX / 144)
+    assert looks.asked == [AUTO_SCALE_PROBE, pytest.approx(GRAIN_PX / 96)]
+    # a scale within 10 % of one looked at already keeps that one (read_at_scale reads its outputs again)
+    looks = Looks(4 * GRAIN_PX, most_px=4 * GRAIN_PX * AUTO_SCALE_PROBE * 0.95)  # says 0.263: the probe's 0.25
+    assert looks.choose() == AUTO_SCALE_PROBE and looks.asked == [AUTO_SCALE_PROBE, AUTO_SCALE_PROBE]
+
+
+def test_grains_the_probe_oversizes_but_the_second_look_finds_in_range_are_read_at_the_model_scale():
+    class Oversized(Looks):  # the probe sees them twice as large as they are
+        def outputs_at(self, scale):
+            self.asked.append(scale)
+            return [self.true_px * scale * (2.0 if scale == AUTO_SCALE_PROBE else 1.0)]
+
+    looks = Oversized(20.0)
+    assert looks.choose() == 1.0 and looks.asked == [AUTO_SCALE_PROBE, pytest.approx(GRAIN_PX / 40)]
+
+
+def test_no_look_without_the_setting_the_training_size_or_a_grain():
+    looks = Looks(8 * GRAIN_PX, meta={})  # a model from before grain_px / grain_px_max
+    assert looks.choose() == 1.0 and looks.asked == []
+    looks = Looks(8 * GRAIN_PX)
+    looks.auto_scale = False  # predict --no-auto-scale
+    assert looks.choose() == 1.0 and looks.asked == []
+    looks = Looks(None)  # no grain found at the probe's scale
+    assert looks.choose() == 1.0 and looks.asked == [AUTO_SCALE_PROBE]
+
+
+def test_apparent_grain_size_is_the_size_maps_median_over_grain_pixels():
+    meta = dict(META, maps=["foreground", "boundary", "distance", "size"])
+    est = InstanceEstimator(meta, None)
+    maps = np.zeros((4, 64, 64), np.float32)
+    maps[0, :20, :20] = 1.0  # 400 grain pixels: 300 of a 10 px grain, 100 of a 40 px one
+    maps[3, :15, :20], maps[3, 15:20, :20] = encode_size(np.float64(10.0)), encode_size(np.float64(40.0))
+    maps[3, 30:, 30:] = encode_size(np.float64(200.0))  # not grain pixels: not counted
+    assert est.apparent_grain_px(maps) == pytest.approx(10.0, rel=1e-4)
+    few = np.zeros_like(maps)
+    few[0, :5, :5] = 1.0
+    assert est.apparent_grain_px(few) is None  # too few grain pixels to say
+    assert InstanceEstimator(dict(META), None).apparent_grain_px(maps[:3]) is None  # no size map
+
+
+def test_a_model_meta_with_bad_grain_sizes_is_refused():
+    meta = dict(META, maps=["foreground", "boundary", "distance", "size"], readout=None, tta="none")
+    message = "grain_px and grain_px_max must be positive numbers (px), grain_px <= grain_px_max"
+    assert message not in readout_problems(meta)  # a model from before them
+    assert message not in readout_problems(dict(meta, grain_px=12.5, grain_px_max=30.0))
+    for bad in (-1, 0, float("nan"), "12", True, None, 31.0):
+        assert message in readout_problems(dict(meta, grain_px=bad, grain_px_max=30.0)), bad
+    assert message in readout_problems(dict(meta, grain_px=12.5))  # one without the other
+
+
+# ---- through predict, on the instance estimator -------------------------------------------------
+
+
+def blob_maps(x) -> np.ndarray:
+    """`local_maps` and a size map: each blob's equivalent-circle diameter (px) on its pixels."""
+    maps = local_maps(x)
+    out = []
+    for m in maps:
+        fg = m[0] > 0.5
+        labels, n = ndimage.label(fg)
+        area = np.bincount(labels.ravel(), minlength=n + 1).astype(float)
+        size = np.where(fg, encode_size(np.sqrt(4 * area / math.pi))[labels], 0.0)
+        out.append(np.concatenate([m, size[None].astype(np.float32)]))
+    return np.stack(out)
+
+
+def discs(side: int, diameter: float) -> np.ndarray:
+    """A grey bed of `side` px with discs of `diameter` px on a grid, apart from each other."""
+    rr, cc = np.indices((side, side))
+    pitch = int(diameter * 1.6)
+    image = np.zeros((side, side), np.uint8)
+    for y in range(pitch // 2, side - pitch // 2, pitch):
+        for x in range(pitch // 2, side - pitch // 2, pitch):
+            image[(rr - y) ** 2 + (cc - x) ** 2 <= (diameter / 2) ** 2] = 200
+    return np.repeat(image[:, :, None], 3, axis=2)
+
+
+@pytest.fixture()
+def sized_model(monkeypatch):
+    calls: list = []
+
+    def run(x):
+        calls.append(tuple(x.shape[-2:]))
+        return blob_maps(x)
+
+    meta = dict(META, maps=["foreground", "boundary", "distance", "size"], grain_px=GRAIN_PX, grain_px_max=GRAIN_PX_MAX)
+    monkeypatch.setattr(predict, "load_predictor", lambda path, device="cpu", runtime="torch":
+                        InstanceEstimator(dict(meta), run))
+    return calls
+
+
+@pytest.mark.parametrize("auto", [True, False])
+def test_large_grains_are_read_coarser_and_measured_in_mm_all_the_same(sized_model, tmp_path, caplog, auto):
+    """Discs of 64 px (32 mm) under a model whose validation grains look 16 px (24 at most): read at a quarter of
+    the model's scale (2 mm/px) with the automatic scale, at it without; the same grains, the
+    same sizes in mm."""
+    Image.fromarray(discs(512, 64)).save(tmp_path / "bed.png")
+    with caplog.at_level(logging.INFO, logger="psdfactory.deploy.predict"):
+        rows = predict.predict_files(tmp_path / "m.pt", [str(tmp_path / "bed.png")], mm_per_px=NET_MM,
+                                     particles_out=tmp_path / "p.csv", auto_scale=auto)
+    assert rows[0]["error"] == ""
+    grains = [r for r in read_csv(tmp_path / "p.csv") if r["touches_edge"] == "False"]
+    assert len(grains) == 25
+    np.testing.assert_allclose([float(r["ecd_mm"]) for r in grains], 32.0, rtol=0.06)
+    scale = float(grains[0]["mask_mm_per_px"])
+    if auto:
+        assert scale == pytest.approx(4 * NET_MM, rel=0.02)
+        assert sized_model == [(128, 128)]  # the probe's outputs, read: no pass at the model's scale
+        assert "bed.png: its grains look 64 px at the model's scale, larger than on any of the model's validation " \
+               "images (at most 24 px): read at 0.25" in caplog.text
+    else:
+        assert scale == pytest.approx(NET_MM) and sized_model == [(512, 512)]
+        assert "x the model's scale" not in caplog.text
+
+
+def test_grains_of_the_training_size_cost_one_small_look(sized_model, tmp_path):
+    Image.fromarray(discs(512, 16)).save(tmp_path / "bed.png")
+    rows = predict.predict_files(tmp_path / "m.pt", [str(tmp_path / "bed.png")], mm_per_px=NET_MM,
+                                 particles_out=tmp_path / "p.csv")
+    assert rows[0]["error"] == "" and sized_model == [(128, 128), (512, 512)]
+    assert {float(r["mask_mm_per_px"]) for r in read_csv(tmp_path / "p.csv")} == {NET_MM}
+
+
+def test_predict_no_auto_scale_flag(sized_model, tmp_path, capsys):
+    from psdfactory.cli import main
+
+    Image.fromarray(discs(256, 64)).save(tmp_path / "bed.png")
+    args = ["predict", "--model", "m.pt", "--mm-per-px", str(NET_MM), "--particles", str(tmp_path / "p.csv")]
+    assert main([*args, "--no-auto-scale", str(tmp_path / "bed.png")]) == 0
+    assert sized_model == [(256, 256)]
+    sized_model.clear()
+    assert main([*args, str(tmp_path / "bed.png")]) == 0
+    assert sized_model[0] == (64, 64) and (256, 256) not in sized_model
