@@ -24,6 +24,7 @@ from .test_photos import META, NET_MM, local_maps, read_csv
 pytest.importorskip("skimage")
 
 GRAIN_PX, GRAIN_PX_MAX = 16.0, 24.0  # how large the stand-in models' validation grains look: median, largest
+SIZES = {"grain_px": GRAIN_PX, "grain_px_max": GRAIN_PX_MAX, "grain_px_probe_max": GRAIN_PX_MAX}
 
 
 class Looks:
@@ -33,7 +34,7 @@ class Looks:
 
     def __init__(self, true_px: float | None, meta: dict | None = None, most_px: float = math.inf):
         self.true_px, self.most_px = true_px, most_px
-        self.meta = {"grain_px": GRAIN_PX, "grain_px_max": GRAIN_PX_MAX} if meta is None else meta
+        self.meta = dict(SIZES) if meta is None else meta
         self.auto_scale = True
         self.asked: list[float] = []
 
@@ -93,8 +94,24 @@ def test_grains_the_probe_oversizes_but_the_second_look_finds_in_range_are_read_
     assert looks.choose() == 1.0 and looks.asked == [AUTO_SCALE_PROBE, pytest.approx(GRAIN_PX / 40)]
 
 
+def test_the_probe_is_compared_with_the_validation_grains_as_the_probe_saw_them():
+    """A network that reads grains seen small as larger (here: all by 2x at the probe's scale):
+    the validation grains' largest look at the probe (48 px) keeps a photo of 40 px grains,
+    oversized to 80 by the probe, at the model's scale in one look; one of 120 px is read coarser."""
+    class Oversized(Looks):
+        def outputs_at(self, scale):
+            self.asked.append(scale)
+            return [self.true_px * scale * (2.0 if scale == AUTO_SCALE_PROBE else 1.0)]
+
+    sizes = dict(SIZES, grain_px_probe_max=2 * 1.8 * GRAIN_PX_MAX)
+    looks = Oversized(1.8 * GRAIN_PX_MAX, meta=sizes)
+    assert looks.choose() == 1.0 and looks.asked == [AUTO_SCALE_PROBE]
+    looks = Oversized(120.0, meta=sizes)
+    assert looks.choose() == pytest.approx(GRAIN_PX / 120.0)
+
+
 def test_no_look_without_the_setting_the_training_size_or_a_grain():
-    looks = Looks(8 * GRAIN_PX, meta={})  # a model from before grain_px / grain_px_max
+    looks = Looks(8 * GRAIN_PX, meta={})  # a model from before the grain sizes
     assert looks.choose() == 1.0 and looks.asked == []
     looks = Looks(8 * GRAIN_PX)
     looks.auto_scale = False  # predict --no-auto-scale
@@ -119,12 +136,12 @@ def test_apparent_grain_size_is_the_size_maps_median_over_grain_pixels():
 
 def test_a_model_meta_with_bad_grain_sizes_is_refused():
     meta = dict(META, maps=["foreground", "boundary", "distance", "size"], readout=None, tta="none")
-    message = "grain_px and grain_px_max must be positive numbers (px), grain_px <= grain_px_max"
+    message = "grain_px, grain_px_max, grain_px_probe_max must be positive numbers (px), grain_px <= grain_px_max"
     assert message not in readout_problems(meta)  # a model from before them
-    assert message not in readout_problems(dict(meta, grain_px=12.5, grain_px_max=30.0))
-    for bad in (-1, 0, float("nan"), "12", True, None, 31.0):
-        assert message in readout_problems(dict(meta, grain_px=bad, grain_px_max=30.0)), bad
-    assert message in readout_problems(dict(meta, grain_px=12.5))  # one without the other
+    assert message not in readout_problems(dict(meta, **SIZES))
+    for bad in (-1, 0, float("nan"), "12", True, None, GRAIN_PX_MAX + 1):
+        assert message in readout_problems(dict(meta, **dict(SIZES, grain_px=bad))), bad
+    assert message in readout_problems(dict(meta, grain_px=12.5, grain_px_max=30.0))  # one missing
 
 
 # ---- through predict, on the instance estimator -------------------------------------------------
@@ -162,7 +179,7 @@ def sized_model(monkeypatch):
         calls.append(tuple(x.shape[-2:]))
         return blob_maps(x)
 
-    meta = dict(META, maps=["foreground", "boundary", "distance", "size"], grain_px=GRAIN_PX, grain_px_max=GRAIN_PX_MAX)
+    meta = dict(META, maps=["foreground", "boundary", "distance", "size"], **SIZES)
     monkeypatch.setattr(predict, "load_predictor", lambda path, device="cpu", runtime="torch":
                         InstanceEstimator(dict(meta), run))
     return calls
@@ -210,3 +227,25 @@ def test_predict_no_auto_scale_flag(sized_model, tmp_path, capsys):
     sized_model.clear()
     assert main([*args, str(tmp_path / "bed.png")]) == 0
     assert sized_model[0] == (64, 64) and (256, 256) not in sized_model
+
+
+def test_training_records_the_validation_grains_sizes_at_both_scales():
+    """grain_sizes: the median and largest apparent size of the validation maps, and the largest
+    of the same images looked at a quarter of the scale (here a network reading every image's grains
+    as half its side), in px at the model's scale; nothing where no grain is seen."""
+    import torch
+
+    from psdfactory.learn.instances.training import grain_sizes
+
+    class Stand:
+        def apparent_grain_px(self, maps):
+            return maps
+
+        def all_maps(self, x):
+            return [x.shape[-1] / 2] * len(x)
+
+    x = torch.zeros((3, 3, 64, 64), dtype=torch.uint8)
+    assert grain_sizes(Stand(), x, [10.0, 20.0, 30.0]) == {"grain_px": 20.0, "grain_px_max": 30.0,
+                                                            "grain_px_probe_max": 64 * AUTO_SCALE_PROBE / 2
+                                                            / AUTO_SCALE_PROBE}
+    assert grain_sizes(Stand(), x, [None, None, None]) == {}

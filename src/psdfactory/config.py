@@ -27,6 +27,9 @@ DEFAULT_INPUT_SIZE = {"inception_v3": 299, "instances": 128}
 # psdfactory predict --tile: the side (px at the network's scale) of the tiles an image too large for one pass is
 # run in by an estimator whose outputs are maps (~1.2 GB for the instance network on a CPU)
 PREDICT_TILE_PX = 1024
+# predict's first look at a photo, as a factor of the model's scale: how large its grains look there (deploy/predict
+# choose_scale); training records how large its validation grains look at it
+AUTO_SCALE_PROBE = 0.25
 PREDICT_RUNTIMES = ("auto", "torch", "onnx")  # what runs a model.pt's network in predict (deploy/fastpath.py)
 
 

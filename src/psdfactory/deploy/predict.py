@@ -18,7 +18,7 @@ import torch
 from torch.nn import functional as F
 
 from .. import PsdError
-from ..config import PREDICT_TILE_PX
+from ..config import AUTO_SCALE_PROBE, PREDICT_TILE_PX
 from ..io import read_photo, same_file, write_json
 from ..learn.calibration import apply_calibration, calibration_note
 from ..learn.data import to_input
@@ -145,11 +145,11 @@ MAX_TILED_PIXELS = 8192 * 8192
 # Grains that look larger than those a model trained on are cut along their texture: the network sees a patch of a
 # grain, not the grain. Like Cellpose reading an image at its cells' diameter, predict reads such a photo at a
 # coarser scale (`choose_scale`): a probe at AUTO_SCALE_PROBE of the model's scale says how large the grains look
-# (Estimator.apparent_grain_px); where that is more than on any of the model's validation images (meta
-# grain_px_max), the photo is read where they look the validation images' median size (meta grain_px), once checked
-# there. Never finer than the model's scale, never with the photo's shorter side under AUTO_SCALE_MIN_PX; a photo
-# whose grains look as the training images' do is read at the model's scale, as before.
-AUTO_SCALE_PROBE = 0.25
+# (Estimator.apparent_grain_px); where that is more than on any of the model's validation images seen the same way
+# (meta grain_px_probe_max), the photo is read where they look the validation images' median size (meta grain_px),
+# checked there against the largest at the model's scale (grain_px_max). Never finer than the model's scale, never
+# with the photo's shorter side under AUTO_SCALE_MIN_PX; a photo whose grains look as the validation images' do is
+# read at the model's scale, as before.
 AUTO_SCALE_MIN_PX = 64
 AUTO_SCALE_REREAD = 1.1  # the check moves the scale by more than this factor: read the photo again there
 
@@ -275,8 +275,8 @@ def choose_scale(est: Estimator, shorter_side: int, outputs_at, where: str = "")
     than the model's validation grains (see AUTO_SCALE_PROBE). `shorter_side`: the photo's shorter
     side in px at the model's scale; `outputs_at(scale)` → the estimator's outputs of the photo at
     that factor. 1 without the estimator's `auto_scale`, the meta's grain sizes or an apparent one."""
-    trained, most = est.meta.get("grain_px"), est.meta.get("grain_px_max")
-    if not est.auto_scale or trained is None or most is None:
+    trained, most, probe_most = (est.meta.get(k) for k in ("grain_px", "grain_px_max", "grain_px_probe_max"))
+    if not est.auto_scale or None in (trained, most, probe_most):
         return 1.0
     lowest = AUTO_SCALE_MIN_PX / shorter_side
     probe = max(AUTO_SCALE_PROBE, lowest)
@@ -291,7 +291,7 @@ def choose_scale(est: Estimator, shorter_side: int, outputs_at, where: str = "")
         return old if abs(math.log(new / old)) <= math.log(AUTO_SCALE_REREAD) else new
 
     seen = looks(probe)
-    if seen is None or seen <= most:
+    if seen is None or seen <= (probe_most if probe == AUTO_SCALE_PROBE else most):
         return 1.0
     scale = near(max(min(1.0, trained / seen), lowest), probe)
     again = looks(scale)  # seen nearer the training size, the grains are sized better: read where that says

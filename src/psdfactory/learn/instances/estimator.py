@@ -31,6 +31,7 @@ from .watershed import DEFAULT_POSTPROCESS, postprocess
 logger = logging.getLogger(__name__)
 
 MIN_GRAIN_PIXELS = 64  # fewer pixels taken for grains than this: no apparent grain size (apparent_grain_px)
+GRAIN_SIZE_KEYS = ("grain_px", "grain_px_max", "grain_px_probe_max")  # training's grain sizes (training.grain_sizes)
 
 
 @dataclass
@@ -303,9 +304,9 @@ def readout_problems(meta: dict) -> list[str]:
     maps = meta.get("maps", list(MASK_MAPS))
     if not (isinstance(maps, list) and tuple(maps) in (MASK_MAPS, MAPS)):
         problems.append(f"maps must be {list(MASK_MAPS)} or {list(MAPS)}")
-    sizes = [meta.get(k) for k in ("grain_px", "grain_px_max")]
+    sizes = [meta.get(k) for k in GRAIN_SIZE_KEYS]
     if any(v is not None for v in sizes) and not (all(num(v) and v > 0 for v in sizes) and sizes[0] <= sizes[1]):
-        problems.append("grain_px and grain_px_max must be positive numbers (px), grain_px <= grain_px_max")
+        problems.append(f"{', '.join(GRAIN_SIZE_KEYS)} must be positive numbers (px), grain_px <= grain_px_max")
     if meta.get("tta", "none") not in TTA_VIEWS:
         problems.append(f"tta must be one of {', '.join(TTA_VIEWS)}")
     if meta.get("sieve_method") not in SIEVE_METHODS:

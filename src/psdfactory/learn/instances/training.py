@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ... import PsdError, __version__
-from ...config import config_fields
+from ...config import AUTO_SCALE_PROBE, config_fields
 from ...io import read_png
 from ...psd import NAMES, SOLID_DEFINITIONS, TARGETS, definition_targets
 from ..augment import TTA_VIEWS, photometric
@@ -107,6 +107,24 @@ def other_readouts(stats: np.ndarray, rows: list[dict], features: tuple[str, ...
     return out
 
 
+def grain_sizes(est, x_val: torch.Tensor, val_maps: np.ndarray) -> dict:
+    """How large the grains of the validation images look to the trained network (px at the model's
+    scale, `apparent_grain_px`), for predict's automatic scale: `grain_px`, the median over the
+    images, `grain_px_max`, the largest, and `grain_px_probe_max`, the largest as seen at
+    AUTO_SCALE_PROBE of the scale (there a network's size map reads grains seen small larger than
+    they are: predict compares a photo's look there with this one). Empty without a size map."""
+    from torch.nn import functional as F
+
+    seen = [g for g in map(est.apparent_grain_px, val_maps) if g is not None]
+    small = F.interpolate(x_val.float(), scale_factor=AUTO_SCALE_PROBE, mode="bilinear", antialias=True,
+                          align_corners=False).round().clamp(0, 255).to(torch.uint8)
+    probed = [g / AUTO_SCALE_PROBE for g in map(est.apparent_grain_px, est.all_maps(small)) if g is not None]
+    if not seen or not probed:
+        return {}
+    return {"grain_px": round(float(np.median(seen)), 3), "grain_px_max": round(float(np.max(seen)), 3),
+            "grain_px_probe_max": round(float(np.max(probed)), 3)}
+
+
 def train_instances(params, settings: InstanceSettings, results_root: Path, out_dir: Path, estimator: type) -> dict:
     """Train the instance estimator (`params`: learn.train.TrainParams with arch 'instances') on
     a dataset's train split, select by validation loss, pick the post-processing on the
@@ -177,10 +195,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     val_masks = [read_png(Path(results_root) / r["mask_path"]) for r in val_rows]
     post, val_f1 = pick_postprocess(val_maps, val_masks)
     est.post = post
-    # how large the grains look to the network on images it did not train on (predict's automatic scale)
-    seen = [g for g in map(est.apparent_grain_px, val_maps) if g is not None]
-    grain_px = {"grain_px": round(float(np.median(seen)), 3), "grain_px_max": round(float(np.max(seen)), 3)} \
-        if seen else {}
+    grain_px = grain_sizes(est, x_val, val_maps)  # how large its grains look: predict's automatic scale
     train_maps = est.all_maps(x_train)
     train_res = [est.analyse_maps(mp, float(r["mm_per_px"])) for mp, r in zip(train_maps, train_rows, strict=True)]
     val_res = [est.analyse_maps(mp, float(r["mm_per_px"])) for mp, r in zip(val_maps, val_rows, strict=True)]
@@ -203,8 +218,9 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
                 f"fit) {r2s['cal']}, raw {r2s['raw']} ({time.perf_counter() - t0:.0f} s)")
     if grain_px:
         logger.info(f"the validation images' grains look {grain_px['grain_px']:.1f} px (median over the images of the "
-                    f"size map's area-weighted median), at most {grain_px['grain_px_max']:.1f} px: predict reads a "
-                    "photo whose grains look larger than that where they look the median's size")
+                    f"size map's area-weighted median), at most {grain_px['grain_px_max']:.1f} px, and at most "
+                    f"{grain_px['grain_px_probe_max']:.1f} px as seen at {AUTO_SCALE_PROBE} x the scale: predict reads "
+                    "a photo whose grains look larger than that where they look the median's size")
 
     res_px = int(np.median([r["resolution"] for r in train_rows]))
     summary = {
