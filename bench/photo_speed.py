@@ -216,9 +216,9 @@ def main() -> None:
     ap.add_argument("--tile", type=int, default=None, help="tile side at the network's scale (default: predict's)")
     ap.add_argument("--runtimes", nargs="+", choices=PREDICT_RUNTIMES, default=["torch"],
                     help="with --model: predict's --runtime, each timed on every photo, interleaved (default: torch)")
-    ap.add_argument("--auto-scale", action=argparse.BooleanOptionalAction, default=True,
-                    help="predict's automatic scale (photos whose grains look larger than the training grains read "
-                    "coarser; default: on, as predict)")
+    ap.add_argument("--auto-scale", action=argparse.BooleanOptionalAction, default=False,
+                    help="predict --auto-scale (photos whose grains look larger than the validation grains read "
+                    "coarser; default: off, as predict)")
     ap.add_argument("--repeats", type=int, default=1, help="runs of each photo and runtime; medians are printed")
     ap.add_argument("--workdir", help="where the photos are made (default: a temporary folder)")
     ap.add_argument("--out", help="also write the rows to this JSON file")

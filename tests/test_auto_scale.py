@@ -212,21 +212,31 @@ def test_large_grains_are_read_coarser_and_measured_in_mm_all_the_same(sized_mod
 def test_grains_of_the_training_size_cost_one_small_look(sized_model, tmp_path):
     Image.fromarray(discs(512, 16)).save(tmp_path / "bed.png")
     rows = predict.predict_files(tmp_path / "m.pt", [str(tmp_path / "bed.png")], mm_per_px=NET_MM,
-                                 particles_out=tmp_path / "p.csv")
+                                 particles_out=tmp_path / "p.csv", auto_scale=True)
     assert rows[0]["error"] == "" and sized_model == [(128, 128), (512, 512)]
     assert {float(r["mask_mm_per_px"]) for r in read_csv(tmp_path / "p.csv")} == {NET_MM}
 
 
-def test_predict_no_auto_scale_flag(sized_model, tmp_path, capsys):
+def test_predict_auto_scale_flag(sized_model, tmp_path):
+    """Off by default (the model's scale, one pass); --auto-scale reads the photo of large grains coarser."""
     from psdfactory.cli import main
 
     Image.fromarray(discs(256, 64)).save(tmp_path / "bed.png")
     args = ["predict", "--model", "m.pt", "--mm-per-px", str(NET_MM), "--particles", str(tmp_path / "p.csv")]
-    assert main([*args, "--no-auto-scale", str(tmp_path / "bed.png")]) == 0
+    assert main([*args, str(tmp_path / "bed.png")]) == 0
     assert sized_model == [(256, 256)]
     sized_model.clear()
-    assert main([*args, str(tmp_path / "bed.png")]) == 0
+    assert main([*args, "--auto-scale", str(tmp_path / "bed.png")]) == 0
     assert sized_model[0] == (64, 64) and (256, 256) not in sized_model
+
+
+def test_a_photo_set_reads_as_predict_auto_scale_where_it_says_so(tmp_path):
+    from psdfactory.photoset import resolve
+
+    Image.fromarray(discs(64, 16)).save(tmp_path / "a.png")
+    spec = {"folder": str(tmp_path), "mm_per_px": 0.5}
+    assert resolve("s", spec).auto_scale is False
+    assert resolve("s", dict(spec, auto_scale=True)).auto_scale is True
 
 
 def test_training_records_the_validation_grains_sizes_at_both_scales():

@@ -541,12 +541,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="instance models: run an image larger than this at the network's scale in overlapping "
                    "tiles of this side (px, a multiple of 32), stitched into one result: memory for the network "
                    f"stays that of one tile (default: {PREDICT_TILE_PX})")
-    p.add_argument("--auto-scale", action=argparse.BooleanOptionalAction, default=True,
+    p.add_argument("--auto-scale", action="store_true",
                    help="instance models, with --mm-per-px: where a photo's grains look larger than the grains the "
-                   "model trained on (cobbles under a model of gravel), read it at the coarser scale that shows them "
-                   "at that size, as a first look at a quarter of the model's scale finds; the log says when. "
-                   "Grains larger than the network sees at once are otherwise cut along their texture "
-                   "(default: on; --no-auto-scale: always at the model's scale)")
+                   "model trained on (cobbles under a model of finer rock), read it at the coarser scale that shows "
+                   "them at that size, as a first look at a quarter of the model's scale finds; the log says when. "
+                   "Grains larger than the network sees at once are otherwise cut along their texture. Off by "
+                   "default: a look the model was not trained on (e.g. bright tables) can make grains look larger "
+                   "than they are (docs/photos.md)")
     p.add_argument("images", nargs="+", metavar="IMAGE",
                    help="image files (.png, .jpg, .tif, .bmp, .webp) and/or folders of them, subfolders included")
     p.set_defaults(func=cmd_predict)

@@ -303,7 +303,7 @@ def choose_scale(est: Estimator, shorter_side: int, outputs_at, where: str = "")
         return 1.0
     logger.info(f"{where}: its grains look {again or seen:.0f} px at the model's scale, larger than on any of the "
                 f"model's validation images (at most {most:.0f} px): read at {scale:.3g} x the model's scale, where "
-                f"they look {trained:.0f} px as those do at the median (predict --no-auto-scale: at its scale)")
+                f"they look {trained:.0f} px as those do at the median (without predict --auto-scale: at its scale)")
     return scale
 
 
@@ -451,7 +451,7 @@ def predict_rows(est: Estimator, files: list[Path], mm_per_px: float | None = No
 
 def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, device: str, outputs: dict | None = None,
                 size_definition: str | None = None, weighting: str | None = None,
-                tile: int | None = DEFAULT_TILE_PX, runtime: str = "torch", auto_scale: bool = True):
+                tile: int | None = DEFAULT_TILE_PX, runtime: str = "torch", auto_scale: bool = False):
     """The model (its runner and meta, described in the log), the image files to predict and what
     the d-values will be of (``reading``). `outputs`: an instance model's --overlay / --masks /
     --particles (refused for the others); `tile`: checked against the model's margin; `runtime`:
@@ -483,7 +483,7 @@ def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None =
                   overlay_dir: Path | None = None, masks_dir: Path | None = None,
                   particles_out: Path | None = None, size_definition: str | None = None,
                   weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX,
-                  runtime: str = "torch", auto_scale: bool = True) -> list[dict]:
+                  runtime: str = "torch", auto_scale: bool = False) -> list[dict]:
     """One row per image. An instance model can also write each image's overlay and instance
     mask and a table of every measured particle (`GrainOutputs`)."""
     outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
@@ -661,7 +661,7 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
                        overlay_dir: Path | None = None, masks_dir: Path | None = None,
                        particles_out: Path | None = None, size_definition: str | None = None,
                        weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX,
-                       runtime: str = "torch", auto_scale: bool = True) -> tuple[int, int]:
+                       runtime: str = "torch", auto_scale: bool = False) -> tuple[int, int]:
     """`psdfactory predict`: each image read, predicted and written (to `emit` and to `out`'s
     partial file) before the next is read, so memory stays flat and an interrupted run keeps
     what it did; `out` appears only when every image is done. → (images, failed). An instance

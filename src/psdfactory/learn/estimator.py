@@ -84,9 +84,9 @@ class Estimator:
     int8: ClassVar[bool] = True  # export and the benchmark may quantise it to int8
     output_doc: ClassVar[str] = "float32 Nx3: d10, d50, d90 in mm"
     output_name: ClassVar[str] = "d_mm"  # the ONNX output's name
-    # predict reads a photo whose grains look larger than the training grains (apparent_grain_px) at a coarser
-    # scale; False (predict --no-auto-scale): always at the model's scale
-    auto_scale: bool = True
+    # True (predict --auto-scale): predict reads a photo whose grains look larger than the validation grains
+    # (apparent_grain_px) at a coarser scale; False (the default): always at the model's scale
+    auto_scale: bool = False
 
     def __init__(self, meta: dict, run: Callable[[torch.Tensor], np.ndarray], net: nn.Module | None = None):
         self.meta = meta
