@@ -114,7 +114,7 @@ def test_no_look_without_the_setting_the_training_size_or_a_grain():
     looks = Looks(8 * GRAIN_PX, meta={})  # a model from before the grain sizes
     assert looks.choose() == 1.0 and looks.asked == []
     looks = Looks(8 * GRAIN_PX)
-    looks.auto_scale = False  # predict --no-auto-scale
+    looks.auto_scale = False  # predict without --auto-scale
     assert looks.choose() == 1.0 and looks.asked == []
     looks = Looks(None)  # no grain found at the probe's scale
     assert looks.choose() == 1.0 and looks.asked == [AUTO_SCALE_PROBE]
