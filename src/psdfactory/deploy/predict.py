@@ -22,7 +22,7 @@ from ..config import AUTO_SCALE_PROBE, PREDICT_TILE_PX
 from ..io import read_photo, same_file, write_json
 from ..learn.calibration import apply_calibration, calibration_note
 from ..learn.data import to_input
-from ..learn.estimator import Estimator, reading_of
+from ..learn.estimator import GRAIN_SIZE_KEYS, Estimator, reading_of
 from ..photoset import IMAGE_SUFFIXES
 from ..psd import TARGETS
 
@@ -275,7 +275,7 @@ def choose_scale(est: Estimator, shorter_side: int, outputs_at, where: str = "")
     than the model's validation grains (see AUTO_SCALE_PROBE). `shorter_side`: the photo's shorter
     side in px at the model's scale; `outputs_at(scale)` → the estimator's outputs of the photo at
     that factor. 1 without the estimator's `auto_scale`, the meta's grain sizes or an apparent one."""
-    trained, most, probe_most = (est.meta.get(k) for k in ("grain_px", "grain_px_max", "grain_px_probe_max"))
+    trained, most, probe_most = (est.meta.get(k) for k in GRAIN_SIZE_KEYS)
     if not est.auto_scale or None in (trained, most, probe_most):
         return 1.0
     lowest = AUTO_SCALE_MIN_PX / shorter_side
@@ -291,6 +291,8 @@ def choose_scale(est: Estimator, shorter_side: int, outputs_at, where: str = "")
         return old if abs(math.log(new / old)) <= math.log(AUTO_SCALE_REREAD) else new
 
     seen = looks(probe)
+    # a photo too small for the probe's factor is looked at coarser than 1 but finer than it: its look is compared
+    # with the validation grains' largest at the model's scale
     if seen is None or seen <= (probe_most if probe == AUTO_SCALE_PROBE else most):
         return 1.0
     scale = near(max(min(1.0, trained / seen), lowest), probe)
@@ -471,7 +473,7 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
     for line in describe_model(meta, model_path, mm_per_px, est.tile_margin_px, tile):
         logger.info(line)
     logger.info(f"d10/d50/d90 of the particles' {what['size_definition']} size, {what['weighting']}-weighted")
-    if auto_scale and est.finds_grains and mm_per_px is not None and "grain_px" not in meta:
+    if auto_scale and est.finds_grains and mm_per_px is not None and not all(k in meta for k in GRAIN_SIZE_KEYS):
         logger.info("this model does not record how large its training grains look (trained by an older "
                     "psdfactory): photos are read at its scale only; train it again for the automatic scale")
     if (note := calibration_note(meta, what)) is not None:  # refuses a reading the calibration is not of

@@ -71,6 +71,12 @@ class DatasetScorer:
         return ""
 
 
+# the meta keys of how large a grain finder's validation grains look (px at the model's scale): their median, their
+# largest, and their largest as seen at config.AUTO_SCALE_PROBE of the scale (instances.training.grain_sizes);
+# predict --auto-scale reads a photo at a coarser scale only with all three (deploy.predict.choose_scale)
+GRAIN_SIZE_KEYS = ("grain_px", "grain_px_max", "grain_px_probe_max")
+
+
 class Estimator:
     """A trained model that reads d10/d50/d90 (mm) off images; see the module docstring."""
 

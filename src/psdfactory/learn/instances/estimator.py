@@ -18,7 +18,7 @@ from torch import nn
 from ... import PsdError
 from ...psd import FOOTPRINT_DEFINITIONS, GRAIN_WEIGHTINGS, NAMES, SOLID_DEFINITIONS, TARGETS, weighted_percentiles
 from ..augment import TTA_VIEWS, unview, view
-from ..estimator import DatasetScorer, Estimator, Reading, model_definition
+from ..estimator import GRAIN_SIZE_KEYS, DatasetScorer, Estimator, Reading, model_definition
 from ..readout import apply_readout
 from . import ARCH
 from .measure import DEFAULT_SIEVE_METHOD, SIEVE_METHODS, InstanceMeasurements, measure_instances, sieve_size
@@ -31,7 +31,6 @@ from .watershed import DEFAULT_POSTPROCESS, postprocess
 logger = logging.getLogger(__name__)
 
 MIN_GRAIN_PIXELS = 64  # fewer pixels taken for grains than this: no apparent grain size (apparent_grain_px)
-GRAIN_SIZE_KEYS = ("grain_px", "grain_px_max", "grain_px_probe_max")  # training's grain sizes (training.grain_sizes)
 
 
 @dataclass

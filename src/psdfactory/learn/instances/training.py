@@ -23,6 +23,7 @@ from ...psd import NAMES, SOLID_DEFINITIONS, TARGETS, definition_targets
 from ..augment import TTA_VIEWS, photometric
 from ..data import label_definition, normalise, particles_by_scene, training_rows
 from ..data import targets as label_targets
+from ..estimator import GRAIN_SIZE_KEYS
 from ..fit import FitTask, fingerprint, fit, write_history
 from ..metrics import regression_metrics
 from ..models import count_parameters
@@ -121,8 +122,8 @@ def grain_sizes(est, x_val: torch.Tensor, val_maps: np.ndarray) -> dict:
     probed = [g / AUTO_SCALE_PROBE for g in map(est.apparent_grain_px, est.all_maps(small)) if g is not None]
     if not seen or not probed:
         return {}
-    return {"grain_px": round(float(np.median(seen)), 3), "grain_px_max": round(float(np.max(seen)), 3),
-            "grain_px_probe_max": round(float(np.max(probed)), 3)}
+    sizes = (np.median(seen), np.max(seen), np.max(probed))
+    return {k: round(float(v), 3) for k, v in zip(GRAIN_SIZE_KEYS, sizes, strict=True)}
 
 
 def train_instances(params, settings: InstanceSettings, results_root: Path, out_dir: Path, estimator: type) -> dict:
