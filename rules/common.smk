@@ -17,6 +17,7 @@ from psdfactory import preflight as psd_preflight
 from psdfactory import runlock as psd_runlock
 from psdfactory.learn.registry import check_architectures
 from psdfactory.manifest import shard_name
+from psdfactory.report import SPREAD_JSON
 from psdfactory.scene import stages as psd_stages
 from psdfactory.scene.stages import STAGES
 from psdfactory.seeding import scene_id, scene_index
@@ -390,6 +391,13 @@ def compare_targets():
     if config["show"]["compare_backends"] == 0:
         return []
     return [f"{RESULTS}/report/backends/compare.json", f"{RESULTS}/report/backends/compare.png"]
+
+
+def seed_spread_input():
+    """bench/seed_spread.py's spread.json under the results, where one has been measured (it is made
+    outside the DAG): the report shows each model's R² over its training seeds."""
+    path = f"{RESULTS}/{SPREAD_JSON.as_posix()}"
+    return [path] if os.path.exists(path) else []
 
 
 def all_targets():

@@ -10,6 +10,7 @@ rule report:
         backends=compare_targets(),
         photos=photo_targets("metrics.json"),
         overlays=photo_targets("overlays"),  # the figures each photos' metrics.json names
+        spread=seed_spread_input(),  # over training seeds, where bench/seed_spread.py measured them
     output:
         html=report(
             f"{RESULTS}/report/report.html",
@@ -24,10 +25,11 @@ rule report:
     params:
         config=lambda wildcards: as_json(config),
         compare=lambda wildcards, input: ["--compare", *input.backends] if input.backends else [],
+        spread=lambda wildcards, input: ["--spread", *input.spread] if input.spread else [],
     shell:
         "psdfactory --log {log:q} report --params {params.config:q} --metrics {input.metrics:q} --scatters {input.scatter:q}"
         " --histories {input.histories:q} --bench {input.bench:q} --manifests {input.manifests:q}"
-        " --contact-sheets {input.sheets:q} --ceilings {input.ceilings:q} {params.compare:q} --photos {input.photos:q}"
+        " --contact-sheets {input.sheets:q} --ceilings {input.ceilings:q} {params.compare:q} {params.spread:q} --photos {input.photos:q}"
         " --html {output.html:q} --md {output.md:q}"
 
 

@@ -4,6 +4,7 @@ leads with the ceilings, per-target R² as a fraction of them, and re-render col
 1000 px browser window (checked in a real headless Chromium)."""
 
 import csv
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -101,6 +102,12 @@ def test_report_reads_the_named_files_only(tiny_results, tmp_path):
     assert "![Contact sheet: tiny](figures/contact_sheet_tiny.png)" in text and "| resnet18 |" in text
     assert (tmp_path / "out" / "figures" / "scatter_resnet18.png").read_bytes() == image.read_bytes()
     assert "data:image/png;base64," in html.read_text()
+    assert "Over training seeds" not in text  # no seed spread measured
+    spread = _spread(tmp_path / "spread", cfg)
+    build_report(cfg, dataclasses.replace(inputs, spread=spread), html, md)
+    assert "### Over training seeds" in md.read_text() and "| resnet18 | tiny: TinyRenderer, 3 scenes | 3 |" in \
+        md.read_text()
+    assert "<h3>Over training seeds</h3>" in html.read_text()
 
     bench = json.loads(files["bench"].read_text())
     files["bench"].write_text(json.dumps({**bench, "arch": "efficientnet_b0"}))  # another model's benchmark
@@ -407,3 +414,43 @@ def test_report_fits_a_1000px_window_with_the_summary_on_the_first_screen(tmp_pa
     for alt, i in images.items():
         if alt.endswith("training and validation loss"):
             assert 10 * 100 / 72 * i["shown"] / i["natural"] >= 10, i
+
+
+def _spread(tmp_path, cfg, seeds=(1, 2, 3), recipe_change=None):
+    """A bench/seed_spread.py spread.json of resnet18 over `seeds`, each run's params.json beside it
+    (this config's recipe, or another one where `recipe_change` is given)."""
+    from psdfactory.config import train_params
+
+    root = tmp_path / "seed_spread"
+    for s in seeds:
+        params = {**train_params(cfg, "resnet18"), "seed": s, "precision": "bf16", **(recipe_change or {})}
+        (root / str(s) / "resnet18").mkdir(parents=True)
+        (root / str(s) / "resnet18" / "params.json").write_text(json.dumps(params))
+    values = {"d10": [0.1, 0.3, 0.2], "d50": [0.5, 0.7, 0.6], "d90": [0.8, 0.82, 0.81]}
+    per = {n: {"r2": {"mean": sum(v) / 3, "min": min(v), "max": max(v), "half_range": (max(v) - min(v)) / 2,
+                      "n": 3, "values": v}} for n, v in values.items()}
+    spread = {"seeds": list(seeds), "date": "2026-11-26T01:00:00+00:00", "cpu": "test CPU", "commit": "abc1234",
+              "complete": True, "datasets": {"tiny": {"label": "tiny: TinyRenderer, 3 scenes"}},
+              "models": {"resnet18": {"tiny": per}, "not_in_this_config": {"tiny": per}}}
+    (root / "spread.json").write_text(json.dumps(spread))
+    return root / "spread.json"
+
+
+def test_spread_table_shows_each_model_over_seeds_of_this_recipe_only(tmp_path):
+    from psdfactory.io import read_json
+    from psdfactory.report import spread_table
+
+    cfg = tiny_config()
+    cfg["train"]["architectures"] = ["resnet18"]
+    path = _spread(tmp_path, cfg)
+    head, rows, note = spread_table(read_json(path), path.parent, cfg)
+    assert rows == [["resnet18", "tiny: TinyRenderer, 3 scenes", "3", "0.20 ± 0.10", "0.60 ± 0.10", "0.81 ± 0.01",
+                     "0.20"]]
+    assert "3 seeds (1, 2, 3)" in note and "abc1234" in note and "Left out" not in note
+    # the runs were trained with another learning rate: not this config's recipe, not shown as its spread
+    other = _spread(tmp_path / "other", cfg, recipe_change={"lr": 0.5})
+    _, rows, note = spread_table(read_json(other), other.parent, cfg)
+    assert rows == [] and "another recipe than this config's: resnet18" in note
+    # a run's params missing: left out too
+    (path.parent / "2" / "resnet18" / "params.json").unlink()
+    assert spread_table(read_json(path), path.parent, cfg)[1] == []

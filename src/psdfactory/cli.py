@@ -133,7 +133,7 @@ def cmd_report(a: argparse.Namespace) -> None:
 
     outputs = {"--html": Path(a.html), "--md": Path(a.md)}
     reads = [a.config_json, *a.metrics, *a.scatters, *a.histories, *a.bench, *a.manifests, *a.contact_sheets,
-             *(a.compare or []), *a.ceilings, *a.photos]
+             *(a.compare or []), *a.ceilings, *a.photos, a.spread]
     if outputs["--html"].suffix.lower() != ".html" or outputs["--md"].suffix.lower() != ".md":
         raise PsdError(f"--html {a.html} must end in .html and --md {a.md} in .md")
     if same_file(outputs["--html"], outputs["--md"]):
@@ -151,7 +151,7 @@ def cmd_report(a: argparse.Namespace) -> None:
     else:
         cfg = _params(a.params)
     inputs = ReportInputs.from_lists(cfg, a.metrics, a.scatters, a.histories, a.bench, a.manifests,
-                                     a.contact_sheets, a.compare, a.ceilings, a.photos)
+                                     a.contact_sheets, a.compare, a.ceilings, a.photos, a.spread)
     build_report(cfg, inputs, Path(a.html), Path(a.md))
     logger.info(f"wrote {a.html} and {a.md}")
 
@@ -705,6 +705,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "the overlays they name are read from overlays/ beside each")
     p.add_argument("--compare", nargs=2, metavar=("JSON", "PNG"),
                    help="the backend comparison's compare.json and compare.png")
+    p.add_argument("--spread", metavar="JSON",
+                   help="bench/seed_spread.py's spread.json, with each run's params.json beside it in "
+                   "<seed>/<arch>/: each model's R² over training seeds (models of another recipe left out)")
     p.add_argument("--html", required=True, metavar="FILE", help="the report to write (.html)")
     p.add_argument("--md", required=True, metavar="FILE", help="its Markdown twin to write (.md)")
     p.set_defaults(func=cmd_report)

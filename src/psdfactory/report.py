@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from . import PsdError, __version__
-from .config import dataset_render, evaluation_datasets, rerender_splits
+from .config import dataset_render, evaluation_datasets, rerender_splits, train_params
 from .io import atomic_path, copy_file, pyplot, read_json, save_figure
 from .manifest import read_shards
 from .psd import NAMES
@@ -31,11 +31,13 @@ class ReportInputs:
     compare: tuple[Path, Path] | None = None  # the backend comparison: (compare.json, compare.png)
     ceilings: dict[str, Path] = field(default_factory=dict)  # dataset → <dataset>/ceiling.json
     photos: dict[str, dict[str, Path]] = field(default_factory=dict)  # arch → photo set → its metrics.json
+    spread: Path | None = None  # bench/seed_spread.py's spread.json (SPREAD_JSON under the results), where measured
 
     @classmethod
     def from_lists(cls, config: dict, metrics: list, scatters: list, histories: list, bench: list, manifests: list,
                    contact_sheets: list | None = None, compare: list | None = None,
-                   ceilings: list | None = None, photos: list | None = None) -> ReportInputs:
+                   ceilings: list | None = None, photos: list | None = None,
+                   spread: str | Path | None = None) -> ReportInputs:
         """Per-architecture lists in the order of ``train.architectures`` (a list keeps its
         order through the rule's JSON); a dataset's files (``<results>/<dataset>/contact_sheet.png``,
         ``.../ceiling.json``) keyed by their dataset's folder, not by position: the config reaches
@@ -60,7 +62,8 @@ class ReportInputs:
                    by_dataset("contact sheets", contact_sheets) if contact_sheets else {},
                    (Path(compare[0]), Path(compare[1])) if compare else None,
                    by_dataset("ceilings", ceilings) if ceilings else {},
-                   photo_inputs(archs, list(config.get("photos") or {}), photos or []))
+                   photo_inputs(archs, list(config.get("photos") or {}), photos or []),
+                   Path(spread) if spread else None)
 
 
 def photo_inputs(archs: list[str], sets: list[str], files: list) -> dict[str, dict[str, Path]]:
@@ -768,6 +771,54 @@ STYLE = ("*{box-sizing:border-box}"
          "pre{background:#f7f7f7;padding:1em;font-size:12px;white-space:pre-wrap;overflow-wrap:anywhere}")
 
 
+# where bench/seed_spread.py writes by default, under the results folder; each run's training params
+# beside it in <seed>/<arch>/params.json
+SPREAD_JSON = Path("seed_spread") / "spread.json"
+RECIPE_FREE = ("seed", "precision", "device")  # what a seed spread may change without being another recipe
+
+
+def same_recipe(stamp: dict, config: dict, arch: str) -> bool:
+    """Whether a seed-spread run's training params (its params.json) are this config's recipe for
+    `arch`: equal but for the training seed, the precision and the device."""
+    mine = train_params(config, arch)
+    return ({k: v for k, v in stamp.items() if k not in RECIPE_FREE}
+            == {k: v for k, v in mine.items() if k not in RECIPE_FREE})
+
+
+def spread_table(spread: dict, runs: Path, config: dict) -> tuple[list[str], list[list[str]], str]:
+    """The per-target R² of each model of this config over training seeds (`spread`: a seed_spread
+    spread.json; `runs`: its folder, which holds <seed>/<arch>/params.json): mean ± half the range
+    per dataset. A model whose runs were trained with another recipe than this config's (or whose
+    params are not found) is left out, and the note says so."""
+    head = ["model", "dataset", "seeds", *(f"R² {n}" for n in NAMES), "max − min, largest"]
+    rows, other = [], []
+    seeds = [int(x) for x in spread.get("seeds", [])]
+    labels = {ds: d.get("label", ds) for ds, d in (spread.get("datasets") or {}).items()}
+    for arch, per in (spread.get("models") or {}).items():
+        if arch not in config["train"]["architectures"]:
+            continue
+        stamps = [runs / str(sd) / arch / "params.json" for sd in seeds]
+        if not stamps or not all(f.is_file() and same_recipe(read_json(f), config, arch) for f in stamps):
+            other.append(arch)
+            continue
+        for ds, targets in per.items():
+            r2 = [targets.get(n, {}).get("r2", {}) for n in NAMES]
+            if not all(_finite(t.get("mean")) for t in r2):
+                continue
+            widest = max(t.get("max", np.nan) - t.get("min", np.nan) for t in r2)
+            rows.append([arch, labels.get(ds, ds), str(max(int(t.get("n", 0)) for t in r2)),
+                         *(f"{t['mean']:.2f} ± {t.get('half_range', 0.0):.2f}" for t in r2), f"{widest:.2f}"])
+    note = (f"Each model of this config trained with {len(seeds)} seeds ({', '.join(map(str, seeds))}) on the same "
+            f"scenes and evaluated on the same test scenes: per-target R² as mean ± half the range, (max − min) / 2, "
+            f"measured by bench/seed_spread.py on {spread.get('date', '?')[:10]} ({spread.get('cpu', '?')}, commit "
+            f"{spread.get('commit', '?')}). The tables above are of this run's one training seed.")
+    if other:
+        note += f" Left out, trained with another recipe than this config's: {', '.join(other)}."
+    if not spread.get("complete", True):
+        note += " The spread was cut short: a row holds the runs it got through."
+    return head, rows, note
+
+
 def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Path) -> None:
     import yaml
 
@@ -847,6 +898,8 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
     compact = {ds: compact_accuracy_table(metrics, ds, ceilings.get(ds)) for ds in tested}
     inst_head, inst_rows = instance_table(metrics, tested)
     inst_compact = compact_instance_table(metrics, tested)
+    spread_head, spread_rows, spread_note = ([], [], "") if inputs.spread is None else \
+        spread_table(read_json(inputs.spread), inputs.spread.parent, config)
 
     md = ["# psdfactory report", "", "## Summary: which model, how good, how fast", "",
           _md_table(*summary_table(summ)), ""]
@@ -864,6 +917,8 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
     for ds in tested:
         md += [f"### {ds} ({where.get(ds, renderer_of(config, ds))})", "", _md_table(*compact[ds]), "",
                "All figures:", "", _md_table(*acc[ds]), ""]
+    if spread_rows:
+        md += ["### Over training seeds", "", spread_note, "", _md_table(spread_head, spread_rows), ""]
     for s, models in photo_sections(photos).items():
         md += [f"## Photos: {s}", "", models["about"], "", PHOTOS_NOTE, ""]
         for a, (head, rows, what) in models["tables"].items():
@@ -896,6 +951,9 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
               _html_table(*compact[ds]),
               _details(f"All figures on {ds}: R² on re-renders, relative error, pooled, order violations",
                        _html_table(*acc[ds]))]
+    if spread_rows:
+        h += ["<h3>Over training seeds</h3>", f"<p class='note'>{e(spread_note)}</p>",
+              _html_table(spread_head, spread_rows)]
     for s, models in photo_sections(photos).items():
         h += [f"<h2>Photos: {_wrap(s)}</h2>", f"<p>{e(models['about'])}</p>", f"<p class='note'>{e(PHOTOS_NOTE)}</p>"]
         for a, (head, rows, what) in models["tables"].items():
