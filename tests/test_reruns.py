@@ -222,3 +222,18 @@ def test_a_rerender_of_the_training_splits_adds_only_its_scenes_and_feeds_traini
         assert sorted(planned_wildcards(r, rule)) == [f"dataset=a_more, scene=a_more-{k:06d}" for k in range(n)]
     assert jobs["train"] == 1
     assert "results/a_more/manifest/scenes/shard-00000.parquet" in r.stdout + r.stderr
+
+
+def test_a_measured_seed_spread_goes_into_the_report(built, tmp_path):
+    """bench/seed_spread.py writes <results>/seed_spread/spread.json outside the DAG: once it exists the
+    report takes it as an input (and is made again when it changes)."""
+    work = own_copy(built[0], tmp_path / "work")
+    cfg = built[1]
+    _, r = dry(work, cfg, target="all")
+    assert "--spread" not in r.stdout + r.stderr
+    (work / "results" / "seed_spread").mkdir()
+    (work / "results" / "seed_spread" / "spread.json").write_text("{}")
+    path = write_config(work / "edited.yaml", cfg)
+    r = snakemake("-n", "-p", "all", "--configfile", str(path), workdir=work)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "--spread results/seed_spread/spread.json" in r.stdout + r.stderr
