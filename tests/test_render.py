@@ -81,3 +81,40 @@ def test_unknown_or_missing_render_setting():
         RenderParams.from_dict({"resolutoin": 64})
     with pytest.raises(PsdError, match="render lacks .*resolution"):  # no second set of defaults
         RenderParams.from_dict({"backend": "tiny"})
+
+
+def test_every_particle_keeps_its_own_id_past_pybullets_127_links_a_body():
+    """The TinyRenderer gets the particles as the links of a few multibodies (one call per 127
+    particles): each pixel's id must still be its own particle's, for scenes of ~1,000 particles as
+    for small ones. 20 × 20 cubes of 4 mm on a grid, each seen from above where it lies."""
+    from psdfactory import config as psd_config
+    from psdfactory.scene.geometry import Geometry
+    from psdfactory.scene.render.look import draw_look
+    from psdfactory.scene.render.tiny import LINKS_PER_BODY, tiny_raw
+
+    side, pitch, table = 20, 6.0, 130.0
+    n = side * side
+    assert n > 3 * LINKS_PER_BODY
+    from psdfactory.scene.shapes import convex_mesh
+
+    corners, faces = convex_mesh(np.array([[x, y, z] for x in (-2, 2) for y in (-2, 2) for z in (-2, 2)], float))
+    corners, faces = corners.astype(np.float32), faces.astype(np.int32)
+    nv, nf = len(corners), len(faces)
+    geo = Geometry(np.tile(corners, (n, 1)), np.tile(faces, (n, 1)), np.arange(n + 1) * nv, np.arange(n + 1) * nf,
+                   np.full(n, 4.0), np.full(n, 64.0), np.full((n, 3), 4.0), np.full(n, 4.0))
+    centres = (np.arange(side) - (side - 1) / 2) * pitch
+    xy = np.array([[x, y] for x in centres for y in centres])
+    pos = np.column_stack([xy, np.full(n, 2.0)])
+    quats = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    cfg = psd_config.validate({"datasets": {"train": {"n_scenes": 1, "table_size": table, "count": [1, 2]}},
+                               "render": {"resolution": 260, "supersample": 1}})
+    p = RenderParams.from_dict(psd_config.render_params(cfg))
+    look = draw_look(np.random.default_rng(0), p, n, np.random.default_rng(1))
+    _, ids, _ = tiny_raw({"table_size": table, "shape_type": "crushed_rock"}, geo, pos, quats, p, look)
+    px = table / 260  # mm per pixel; rows grow towards -y, columns towards +x
+    for k in range(n):
+        r, c = np.nonzero(ids == k + 1)
+        assert len(r) > 20, f"particle {k} not seen"
+        x, y = (c.mean() + 0.5) * px - table / 2, table / 2 - (r.mean() + 0.5) * px  # its centre, mm
+        assert abs(x - xy[k, 0]) < pitch / 3 and abs(y - xy[k, 1]) < pitch / 3, f"particle {k}'s pixels lie elsewhere"
+    assert ids.max() == n

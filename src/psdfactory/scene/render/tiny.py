@@ -68,6 +68,8 @@ def shade_from_height(height: np.ndarray, px_mm: float, light_dir: list[float], 
     return shadow.astype(np.float32)
 
 
+LINKS_PER_BODY = 127  # pybullet's segmentation value holds a link index + 1 in its top 7 bits
+
 # the Gaussian sigmas of the texture's two octaves, in units of its grain (mm)
 TEXTURE_OCTAVES = (0.4, 1.6)
 
@@ -112,22 +114,23 @@ def _tiny_raw(pb, spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.
         )
         table = pb.createMultiBody(0, -1, table_vs, basePosition=[0, 0, look.ground_level_mm * CM - 0.5],
                                    physicsClientId=cid)
-        body_to_label = {table: 0}
-        for i, (verts, idx, normals) in enumerate(meshes):
-            vs = pb.createVisualShape(
-                pb.GEOM_MESH,
-                vertices=verts,
-                indices=idx,
-                normals=normals,
-                rgbaColor=[*look.particle_rgb[i], 1.0],
-                specularColor=[0.05, 0.05, 0.05],
-                physicsClientId=cid,
-            )
+        # the particles as the links of a few multibodies: one call per LINKS_PER_BODY particles
+        # instead of one each (~30x faster to set up); a pixel's segmentation value is its body's id
+        # + (link index + 1) << 24, in 32 bits: hence at most 127 links a body
+        shapes = [pb.createVisualShape(pb.GEOM_MESH, vertices=verts, indices=idx, normals=normals,
+                                       rgbaColor=[*look.particle_rgb[i], 1.0], specularColor=[0.05, 0.05, 0.05],
+                                       physicsClientId=cid)
+                  for i, (verts, idx, normals) in enumerate(meshes)]
+        first = {}  # body id → its first particle
+        for a in range(0, n, LINKS_PER_BODY):
+            k = min(n - a, LINKS_PER_BODY)
             body = pb.createMultiBody(
-                0, -1, vs, basePosition=(pos_mm[i] * CM).tolist(), baseOrientation=quats[i].tolist(),
-                physicsClientId=cid,
-            )
-            body_to_label[body] = i + 1
+                0, -1, -1, linkMasses=[0] * k, linkCollisionShapeIndices=[-1] * k,
+                linkVisualShapeIndices=shapes[a:a + k], linkPositions=(pos_mm[a:a + k] * CM).tolist(),
+                linkOrientations=quats[a:a + k].tolist(), linkInertialFramePositions=[[0, 0, 0]] * k,
+                linkInertialFrameOrientations=[[0, 0, 0, 1]] * k, linkParentIndices=[0] * k,
+                linkJointTypes=[pb.JOINT_FIXED] * k, linkJointAxis=[[0, 0, 1]] * k, physicsClientId=cid)
+            first[body] = a
 
         H = p.camera_height_mm * CM
         fov = math.degrees(2 * math.atan(half * look.view_fraction / H))
@@ -148,6 +151,7 @@ def _tiny_raw(pb, spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.
             lightDiffuseCoeff=look.light_intensity * (1 - look.ambient),
             lightSpecularCoeff=0.05,
             renderer=pb.ER_TINY_RENDERER,
+            flags=pb.ER_SEGMENTATION_MASK_OBJECT_AND_LINKINDEX,
             physicsClientId=cid,
         )
     finally:
@@ -156,10 +160,13 @@ def _tiny_raw(pb, spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.
     rgb = np.asarray(rgba, dtype=np.float32).reshape(size, size, 4)[..., :3] / 255.0
     depth = np.asarray(depth, dtype=np.float64).reshape(size, size)
     seg = np.asarray(seg).reshape(size, size)
-    lut_keys = np.fromiter(body_to_label.keys(), dtype=np.int64)
-    lut = np.zeros(int(lut_keys.max()) + 2, dtype=np.int32)
-    lut[lut_keys] = np.fromiter(body_to_label.values(), dtype=np.int32)
-    ids = np.where(seg >= 0, lut[np.clip(seg, 0, len(lut) - 1)], 0)
+    # table and background: 0; link j of a body whose first particle is a: particle a + j, id a + j + 1
+    body, link = seg & 0xFFFFFF, seg >> 24
+    lut = np.zeros(max(first, default=table) + 2, dtype=np.int64)
+    for b, a in first.items():
+        lut[b] = a
+    hit = (seg >= 0) & (link > 0) & np.isin(body, list(first))
+    ids = np.where(hit, lut[np.clip(body, 0, len(lut) - 1)] + link, 0).astype(np.int32)
     z_eye = far * near / (far - (far - near) * depth)
     height_mm = np.clip((H - z_eye) / CM, 0, None).astype(np.float32)
     return rgb, ids, height_mm
