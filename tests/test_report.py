@@ -385,6 +385,7 @@ def test_report_fits_a_1000px_window_with_the_summary_on_the_first_screen(tmp_pa
     assert not re.search(r"-\d[\d.]* \(-?\d+ %\)", text + md.read_text())  # no fraction of a negative R²
     assert "-4.603 (—)" in text and "<details><summary>The configuration of this run (YAML)</summary>" in text
     assert "<h2>Photos: real</h2>" in text and "photos: 2 photos vs reference (ellipse-minor)" in text
+    assert "Beside the paper" in text and "| efficientnet_b0 | the paper | 0.878 | 0.967 | 0.960 |" in md.read_text()
     assert "| barton_creek.jpg | 300 / 347 | 0.800 | 0.667 | 0.620 |" in md.read_text()
     page = tmp_path / "measured.html"
     page.write_text(text.replace("</body>", MEASURE + "</body>"))
@@ -454,3 +455,29 @@ def test_spread_table_shows_each_model_over_seeds_of_this_recipe_only(tmp_path):
     # a run's params missing: left out too
     (path.parent / "2" / "resnet18" / "params.json").unlink()
     assert spread_table(read_json(path), path.parent, cfg)[1] == []
+
+
+def test_paper_tables_put_each_cnn_beside_the_papers_table_2_and_3():
+    from psdfactory.paper import TABLE2, TABLE3
+    from psdfactory.report import paper_tables
+
+    cfg = tiny_config()
+    cfg["train"]["architectures"] = ["resnet50", "instances"]
+    per = {n: {"r2": r, "mae": 0.25, "mse": 0.1} for n, r in zip(("d10", "d50", "d90"), (0.5, 0.8, 0.9), strict=True)}
+    metrics = {a: {"datasets": {"tiny": per}} for a in ("resnet50", "instances")}
+    speed = {"images_per_s": 12.5, "ms_per_image": 80.0, "batch": 2}
+    bench = {a: {"cpu": {"summary": "test CPU"}, "results": [
+        {"device": "cpu", "params_m": 25.6, "paths": {"fp32": {"name": "fp32 eager", "batch1": speed, "batched": speed},
+                                                      "fast": {"name": "bf16", "batch1": speed, "batched": speed}}}]}
+        for a in ("resnet50", "instances")}
+    ceilings = {"tiny": {"visible": {"d10_mm": 0.7, "d50_mm": 0.95, "d90_mm": 0.97},
+                         "sampling": {"d10_mm": 0.9, "d50_mm": 0.9, "d90_mm": 0.9}}}
+    (head2, rows2), (head3, rows3), note = paper_tables(cfg, metrics, bench, {}, ceilings)
+    assert rows2[0] == ["resnet50", "the paper", *(f"{TABLE2['resnet50'][n][0]:.3f}" for n in ("d10", "d50", "d90")),
+                        *(f"{TABLE2['resnet50'][n][2]:.3f}" for n in ("d10", "d50", "d90"))]
+    assert rows2[1] == ["resnet50", "this run", "0.500", "0.800", "0.900", "0.250", "0.250", "0.250"]
+    assert rows2[2][:2] == ["instances", "this run"]  # a model the paper has not: this run's row only
+    assert rows2[3][0].startswith("ceiling: the visible") and rows2[3][2:5] == ["0.700", "0.950", "0.970"]
+    assert rows3[0][:3] == ["resnet50", f"{TABLE3['resnet50']['cpu_fps']:.2f}", f"{TABLE3['resnet50']['gpu_fps']:.2f}"]
+    assert rows3[0][4] == "12.5" and rows3[1][1] == "—"
+    assert "933 renders" in note and "test CPU" in note

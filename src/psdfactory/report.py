@@ -12,9 +12,10 @@ from pathlib import Path
 import numpy as np
 
 from . import PsdError, __version__
-from .config import dataset_render, evaluation_datasets, rerender_splits, train_params
+from .config import dataset_render, evaluation_datasets, main_training_dataset, rerender_splits, train_params
 from .io import atomic_path, copy_file, pyplot, read_json, save_figure
 from .manifest import read_shards
+from .paper import TABLE2, TABLE2_TEST, TABLE3, TABLE3_CPU
 from .psd import NAMES
 
 
@@ -819,6 +820,54 @@ def spread_table(spread: dict, runs: Path, config: dict) -> tuple[list[str], lis
     return head, rows, note
 
 
+def paper_tables(config: dict, metrics: dict[str, dict], bench: dict[str, dict], tables: dict,
+                 ceilings: dict[str, dict]) -> tuple[tuple, tuple, str]:
+    """This run beside the seed paper (paper.py): its Table 2 layout (per-target R² and MAE) for the
+    paper's three CNNs and every other model of the run, on the main training dataset's test split,
+    with that dataset's visible-particle and sampling ceilings; and its Table 3 layout (images per
+    second on the CPU) beside the paper's. The note says what each was measured on."""
+    ds = main_training_dataset(config)
+    head2 = ["model", "measured", *(f"R² {n}" for n in NAMES), *(f"MAE {n} (mm)" for n in NAMES)]
+    rows2 = []
+    for arch, m in metrics.items():
+        if arch in TABLE2:
+            rows2.append([arch, "the paper", *(f"{TABLE2[arch][n][0]:.3f}" for n in NAMES),
+                          *(f"{TABLE2[arch][n][2]:.3f}" for n in NAMES)])
+        d = m.get("datasets", {}).get(ds)
+        if d:
+            rows2.append([arch, "this run", *(_fmt(d[n]["r2"], 3) for n in NAMES),
+                          *(_fmt(d[n]["mae"], 3) for n in NAMES)])
+    ceiling = ceilings.get(ds) or {}
+    for kind, what in (("visible", "ceiling: the visible particles' true sizes"), ("sampling", "ceiling: μ and σ")):
+        if ceiling.get(kind):
+            rows2.append([what, "this run's dataset", *(_fmt(ceiling[kind][f"{n}_mm"], 3) for n in NAMES),
+                          *[MISSING] * 3])
+    head3 = ["model", "the paper: CPU img/s", "the paper: GPU img/s", "this run: device", "fp32 batch 1 (img/s)",
+             "fast path batched (img/s)", "parameters (M)"]
+    rows3 = []
+    for arch, b in bench.items():
+        paper = TABLE3.get(arch, {})
+        for r in b["results"]:
+            rows3.append([arch, _fmt(paper.get("cpu_fps"), 2), _fmt(paper.get("gpu_fps"), 2), r["device"],
+                          _fmt(r["paths"]["fp32"]["batch1"]["images_per_s"], 1),
+                          _fmt(r["paths"]["fast"]["batched"]["images_per_s"], 1) + f" ({r['paths']['fast']['name']})",
+                          _fmt(r["params_m"], 1)])
+    t = tables.get(ds)
+    if t is not None:
+        n = np.asarray(t.column("n_particles"))
+        mm = float(np.median(np.asarray(t.column("mm_per_px"))))
+        here = (f"{ds}'s {t.column('split').to_pylist().count('test')} test scenes ({n.min()}–{n.max()} particles, "
+                f"{mm:.2f} mm/px, labels of {label_kind(t)})")
+    else:
+        here = f"{ds}'s test scenes"
+    cpus = "; ".join(sorted({b["cpu"]["summary"] for b in bench.values() if "cpu" in b})) or "not recorded"
+    note = (f"The paper's Table 2 is on {TABLE2_TEST}, its Table 3 on an RTX 3060 and an {TABLE3_CPU}; this run's "
+            f"figures are on {here} and this machine's CPU ({cpus}). Figures compare only where the distributions "
+            "match: config/paper-cpu.yaml and config/paper.yaml have the paper's. The ceilings say what a perfect "
+            "measurement of this run's images would read.")
+    return (head2, rows2), (head3, rows3), note
+
+
 def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Path) -> None:
     import yaml
 
@@ -898,6 +947,7 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
     compact = {ds: compact_accuracy_table(metrics, ds, ceilings.get(ds)) for ds in tested}
     inst_head, inst_rows = instance_table(metrics, tested)
     inst_compact = compact_instance_table(metrics, tested)
+    paper2, paper3, paper_note = paper_tables(config, metrics, bench, tables, ceilings)
     spread_head, spread_rows, spread_note = ([], [], "") if inputs.spread is None else \
         spread_table(read_json(inputs.spread), inputs.spread.parent, config)
 
@@ -919,6 +969,9 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
                "All figures:", "", _md_table(*acc[ds]), ""]
     if spread_rows:
         md += ["### Over training seeds", "", spread_note, "", _md_table(spread_head, spread_rows), ""]
+    if paper2[1]:
+        md += ["### Beside the paper (its Tables 2 and 3)", "", paper_note, "", _md_table(*paper2), "",
+               _md_table(*paper3), ""]
     for s, models in photo_sections(photos).items():
         md += [f"## Photos: {s}", "", models["about"], "", PHOTOS_NOTE, ""]
         for a, (head, rows, what) in models["tables"].items():
@@ -954,6 +1007,9 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
     if spread_rows:
         h += ["<h3>Over training seeds</h3>", f"<p class='note'>{e(spread_note)}</p>",
               _html_table(spread_head, spread_rows)]
+    if paper2[1]:
+        h += ["<h3>Beside the paper <span class='sub'>(its Tables 2 and 3)</span></h3>",
+              f"<p class='note'>{e(paper_note)}</p>", _html_table(*paper2), _html_table(*paper3)]
     for s, models in photo_sections(photos).items():
         h += [f"<h2>Photos: {_wrap(s)}</h2>", f"<p>{e(models['about'])}</p>", f"<p class='note'>{e(PHOTOS_NOTE)}</p>"]
         for a, (head, rows, what) in models["tables"].items():
