@@ -259,3 +259,21 @@ def test_training_records_the_validation_grains_sizes_at_both_scales():
                                                             "grain_px_probe_max": 64 * AUTO_SCALE_PROBE / 2
                                                             / AUTO_SCALE_PROBE}
     assert grain_sizes(Stand(), x, [None, None, None]) == {}
+
+
+def test_auto_scale_says_when_it_cannot_apply(sized_model, tmp_path, caplog, monkeypatch):
+    """Without --mm-per-px, or with a model that finds no grains, --auto-scale changes nothing:
+    predict says so instead of ignoring it in silence."""
+    Image.fromarray(discs(128, 16)).save(tmp_path / "bed.png")
+    with caplog.at_level(logging.INFO, logger="psdfactory.deploy.predict"):
+        predict.predict_files(tmp_path / "m.pt", [str(tmp_path / "bed.png")], auto_scale=True)
+    assert "--auto-scale has no effect without --mm-per-px" in caplog.text
+    caplog.clear()
+    monkeypatch.setattr(InstanceEstimator, "finds_grains", False)
+    with caplog.at_level(logging.INFO, logger="psdfactory.deploy.predict"):
+        predict.predict_files(tmp_path / "m.pt", [str(tmp_path / "bed.png")], mm_per_px=NET_MM, auto_scale=True)
+    assert "--auto-scale has no effect here" in caplog.text and "without --mm-per-px" not in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="psdfactory.deploy.predict"):
+        predict.predict_files(tmp_path / "m.pt", [str(tmp_path / "bed.png")], mm_per_px=NET_MM)
+    assert "--auto-scale" not in caplog.text

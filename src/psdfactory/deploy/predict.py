@@ -473,7 +473,13 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
     for line in describe_model(meta, model_path, mm_per_px, est.tile_margin_px, tile):
         logger.info(line)
     logger.info(f"d10/d50/d90 of the particles' {what['size_definition']} size, {what['weighting']}-weighted")
-    if auto_scale and est.finds_grains and mm_per_px is not None and not all(k in meta for k in GRAIN_SIZE_KEYS):
+    if auto_scale and not est.finds_grains:
+        logger.warning(f"--auto-scale has no effect here: {meta['arch']} reads d10/d50/d90 straight off the image at "
+                       "its training scale; the automatic scale is for models that find grains (arch 'instances')")
+    elif auto_scale and mm_per_px is None:
+        logger.warning("--auto-scale has no effect without --mm-per-px: the photos are taken to be at the training "
+                       "images' scale; give their mm per pixel for the automatic scale")
+    elif auto_scale and not all(k in meta for k in GRAIN_SIZE_KEYS):
         logger.info("this model does not record how large its training grains look (trained by an older "
                     "psdfactory): photos are read at its scale only; train it again for the automatic scale")
     if (note := calibration_note(meta, what)) is not None:  # refuses a reading the calibration is not of
