@@ -66,3 +66,42 @@ def test_missing_onnxruntime_is_a_clear_error(monkeypatch):
     monkeypatch.setattr(capability, "onnxruntime_available", lambda: False)
     with pytest.raises(PsdError, match="int8 export needs ONNX Runtime"):
         require_onnxruntime("int8 export")
+
+
+@pytest.mark.parametrize("spike_on, expected", [("bf16", "bf16"), ("fp32", "bf16"), (None, "bf16")])
+def test_precision_auto_keeps_the_faster_despite_one_slow_pass(spike_on, expected):
+    """On shared cores one timed pass can take many times its due: 'auto' times each precision in
+    interleaved rounds and counts its fastest, so one spike does not flip the choice."""
+    import itertools
+
+    import torch
+    from torch import nn
+
+    from psdfactory.learn.runtime import PRECISION_ROUNDS, faster_cpu_precision
+
+    order = ["bf16", "fp32"] + [p for r in range(PRECISION_ROUNDS)
+                                for p in (["bf16", "fp32"] if r % 2 == 0 else ["fp32", "bf16"])]
+    due = {"bf16": 0.1, "fp32": 1.0}  # bf16 is 10x faster here
+    spiked = order.index(spike_on, 2) if spike_on else None  # the first timed pass of that precision
+    durations = [due[p] * (50.0 if i == spiked else 1.0) for i, p in enumerate(order)]
+    clock = itertools.accumulate(d for d in durations for d in (0.0, d))  # each pass reads the clock twice
+    model = nn.Sequential(nn.Conv2d(3, 4, 3), nn.BatchNorm2d(4))
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    pick = faster_cpu_precision(model, 16, 2, lambda out: out.float().sum(), timer=lambda: next(clock))
+    assert pick == expected
+    assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())  # its statistics restored
+
+
+def test_precision_auto_picks_fp32_where_it_is_faster():
+    import itertools
+
+    from torch import nn
+
+    from psdfactory.learn.runtime import PRECISION_ROUNDS, faster_cpu_precision
+
+    order = ["bf16", "fp32"] + [p for r in range(PRECISION_ROUNDS)
+                                for p in (["bf16", "fp32"] if r % 2 == 0 else ["fp32", "bf16"])]
+    durations = [{"bf16": 0.3, "fp32": 0.2}[p] for p in order]
+    clock = itertools.accumulate(d for d in durations for d in (0.0, d))
+    model = nn.Conv2d(3, 4, 3)
+    assert faster_cpu_precision(model, 16, 2, lambda out: out.float().sum(), timer=lambda: next(clock)) == "fp32"

@@ -4,6 +4,7 @@ to run on, the loss, batched inference, and saving/loading a model file."""
 from __future__ import annotations
 
 import logging
+import math
 import time
 from contextlib import nullcontext
 from pathlib import Path
@@ -147,32 +148,44 @@ def training_precision(requested: str, device: torch.device, model: nn.Module, s
     return precision
 
 
-def faster_cpu_precision(model: nn.Module, size: int, batch: int, loss_of) -> str:
+PRECISION_ROUNDS = 3  # timed passes of each precision, interleaved; the fastest of each counts
+
+
+def faster_cpu_precision(model: nn.Module, size: int, batch: int, loss_of, timer=time.perf_counter) -> str:
     """bf16 autocast or fp32 for CPU training, whichever trains this model faster here.
 
     Native bf16 helps the big convolutions (ResNet-50: ~2×; the instance network 1.8-2.1× on an
     AMD EPYC with AVX512-BF16) but not always the depthwise ones (EfficientNet-B0 can be slower in
-    bf16), so 'auto' times one forward+backward pass of each on a batch of `batch` random
-    `size`-px images (after a warm-up; `loss_of(output)` gives the loss to differentiate) without
-    stepping the optimiser, and keeps the faster.
+    bf16), so 'auto' times forward+backward passes of each on a batch of `batch` random `size`-px
+    images (`loss_of(output)` gives the loss to differentiate) without stepping the optimiser, and
+    keeps the faster. After a warm-up pass of each, PRECISION_ROUNDS rounds time one pass of each,
+    in alternating order, and each precision counts its fastest: on cores shared with other work a
+    single pass can take several times its time (measured: fp32 picked over a 10× faster bf16).
     """
     x = torch.randn(batch, 3, size, size).contiguous(memory_format=torch.channels_last)
     dev = torch.device("cpu")
-    times = {}
     saved = {k: v.clone() for k, v in model.state_dict().items()}  # BatchNorm statistics move in train mode
     model.train()
-    for prec in ("bf16", "fp32"):
-        for _ in range(2):  # the first pass warms up
-            t0 = time.perf_counter()
-            with autocast(dev, prec):
-                out = model(x)
-            loss_of(out).backward()
-            times[prec] = time.perf_counter() - t0
+
+    def one_pass(prec: str) -> float:
+        t0 = timer()
+        with autocast(dev, prec):
+            out = model(x)
+        loss_of(out).backward()
+        return timer() - t0
+
+    order = ["bf16", "fp32"]
+    for prec in order:  # warm-up
+        one_pass(prec)
+    times = {prec: math.inf for prec in order}
+    for r in range(PRECISION_ROUNDS):
+        for prec in (order if r % 2 == 0 else order[::-1]):
+            times[prec] = min(times[prec], one_pass(prec))
     model.zero_grad(set_to_none=True)
     model.load_state_dict(saved)
     pick = "bf16" if times["bf16"] < times["fp32"] else "fp32"
     logger.info(f"precision auto: one training batch takes {times['bf16']:.2f} s in bf16, "
-                f"{times['fp32']:.2f} s in fp32 → {pick}")
+                f"{times['fp32']:.2f} s in fp32 (fastest of {PRECISION_ROUNDS} each) → {pick}")
     return pick
 
 
