@@ -853,11 +853,12 @@ def paper_tables(config: dict, metrics: dict[str, dict], bench: dict[str, dict],
                           _fmt(r["paths"]["fast"]["batched"]["images_per_s"], 1) + f" ({r['paths']['fast']['name']})",
                           _fmt(r["params_m"], 1)])
     t = tables.get(ds)
-    if t is not None:
-        n = np.asarray(t.column("n_particles"))
-        mm = float(np.median(np.asarray(t.column("mm_per_px"))))
-        here = (f"{ds}'s {t.column('split').to_pylist().count('test')} test scenes ({n.min()}–{n.max()} particles, "
-                f"{mm:.2f} mm/px, labels of {label_kind(t)})")
+    test = np.asarray(t.column("split").to_pylist()) == "test" if t is not None else None
+    if test is not None and test.any():
+        n = np.asarray(t.column("n_particles"))[test]
+        mm = float(np.median(np.asarray(t.column("mm_per_px"))[test]))
+        here = (f"{ds}'s {int(test.sum())} test scenes ({n.min()}–{n.max()} particles, {mm:.2f} mm/px, labels of "
+                f"{label_kind(t)})")
     else:
         here = f"{ds}'s test scenes"
     cpus = "; ".join(sorted({b["cpu"]["summary"] for b in bench.values() if "cpu" in b})) or "not recorded"
