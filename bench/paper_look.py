@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import csv
 import json
 import subprocess
 import sys
@@ -77,18 +76,19 @@ def make_scenes(cfg: dict, n: int, work: Path) -> list[Path]:
 
 
 def predictions(model: Path, images: list[Path], out: Path) -> tuple[dict[str, np.ndarray], str]:
-    """d10/d50/d90 per image, in b-axis for an instance model, else the model's own definition."""
-    import torch
+    """d10/d50/d90 per image, in b-axis for a model that finds grains, else the model's own definition."""
+    from psdfactory.deploy.predict import read_rows
+    from psdfactory.learn.registry import estimator_class
+    from psdfactory.learn.runtime import load_checkpoint
 
-    meta = torch.load(model, map_location="cpu", weights_only=False)["meta"]
-    finds = meta.get("arch") == "instances"
+    finds = estimator_class(load_checkpoint(model)["meta"]["arch"]).finds_grains
     cmd = [str(Path(sys.executable).with_name("psdfactory")), "-q", "predict", "--model", str(model),
            "--mm-per-px", str(MM_PER_PX), "--out", str(out), *(["--size-definition", "b-axis"] if finds else []),
            *map(str, images)]
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
-    rows = {Path(r["image"]).parent.name: r for r in csv.DictReader(open(out, encoding="utf-8"))}
+    rows = {Path(r["image"]).parent.name: r for r in read_rows(out)}
     definition = next(iter(rows.values()))["size_definition"]
-    return {n: np.array([float(rows[p.parent.name][f"{n}_mm"]) for p in images]) for n in NAMES}, definition
+    return {n: np.array([rows[p.parent.name][f"{n}_mm"] for p in images]) for n in NAMES}, definition
 
 
 def main() -> None:
@@ -108,8 +108,8 @@ def main() -> None:
     labels = [json.loads((d / "labels.json").read_text(encoding="utf-8")) for d in dirs]
     images = [d / "image.png" for d in dirs]
     print(f"\n{'model':<48}{'labels':>8}  " + "  ".join(f"{n + ': rho, mean err, mean |err|':>30}" for n in NAMES))
-    for model in a.models:
-        pred, definition = predictions(model, images, a.work / f"pred-{abs(hash(str(model)))}.csv")
+    for i, model in enumerate(a.models):
+        pred, definition = predictions(model, images, a.work / f"predictions-{i}.csv")
         key = definition.replace("-", "_")
         cells = []
         for n in NAMES:
