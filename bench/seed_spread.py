@@ -63,6 +63,31 @@ ARCH_LABELS = {"instances": "instance estimator", "resnet50": "ResNet-50", "ince
 BACKEND_LABELS = {"tiny": "TinyRenderer", "cycles": "Cycles"}
 
 
+def commit() -> str:
+    """The checkout's commit (and whether src/ or rules/ differ from it); where the tree is a
+    copy without git (a GPU node), $PSD_COMMIT or "unknown"."""
+    def git(*args: str) -> str:
+        try:
+            return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True).stdout.strip()
+        except OSError:
+            return ""
+
+    head = git("rev-parse", "--short", "HEAD")
+    if not head:
+        return os.environ.get("PSD_COMMIT", "unknown")
+    dirty = git("status", "--porcelain", "--untracked-files=no", "--", "src", "rules")
+    return head + (" (+ uncommitted changes in src/ or rules/)" if dirty else "")
+
+
+def gpu_name() -> str | None:
+    """The CUDA device the runs train on (device auto), if PyTorch sees one."""
+    try:
+        import torch
+    except ImportError:
+        return None
+    return torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+
+
 def fmt_time(s: float) -> str:
     s = max(0, int(round(s)))
     return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
@@ -187,7 +212,8 @@ def markdown(summary: dict) -> str:
              f"mean ± (max − min) / 2 over the "
              f"training seeds of each row (of {', '.join(map(str, seeds))}; a row of one seed is one run, no "
              f"spread); `{summary['command']}`, {summary['date'][:10]}, commit {summary['commit']}, "
-             f"{summary['cpu']}." + ("" if summary["complete"] else " **Partial: not every run is done yet.**"), "",
+             f"{summary['cpu']}" + (f", {summary['gpu']}" if summary.get("gpu") else "") + "."
+             + ("" if summary["complete"] else " **Partial: not every run is done yet.**"), "",
              "| model | test scenes | seeds | R² d10 | R² d50 | R² d90 | "
              "error d10: MAE, rel. | error d50 | error d90 |",
              "|---|---|---|---|---|---|---|---|---|"]
@@ -263,6 +289,45 @@ def write_summary(out: Path, meta: dict, archs: list[str], seeds: list[int], dat
     return md
 
 
+SETTABLE = ("train.", "evaluate.")  # the recipe; a dataset setting would not match the scenes Snakemake makes
+
+
+def apply_settings(raw: dict, settings: list[str]) -> dict:
+    """`raw` with each KEY=VALUE of `settings` set (KEY dotted, VALUE parsed as YAML)."""
+    import yaml
+
+    for item in settings:
+        key, sep, value = item.partition("=")
+        if not sep or not key.startswith(SETTABLE) or key in SETTABLE:
+            sys.exit(f"--set {item!r}: give KEY=VALUE with a key under {' or '.join(s[:-1] for s in SETTABLE)}")
+        *parents, leaf = key.split(".")
+        node = raw
+        for k in parents:
+            node = node.setdefault(k, {})
+            if not isinstance(node, dict):
+                sys.exit(f"--set {item!r}: {k} is not a section of the config")
+        node[leaf] = yaml.safe_load(value)
+    return raw
+
+
+def load_config(path: Path, settings: list[str]) -> dict:
+    """The config, validated (Snakemake's validator and the project's checks) with `settings`
+    applied; a .json file that --write-config wrote is taken as it is (no Snakemake needed)."""
+    from psdfactory import PsdError
+    from psdfactory import config as psd_config
+
+    try:
+        if path.suffix == ".json":
+            cfg = json.loads(path.read_text(encoding="utf-8"))
+            if settings:
+                sys.exit("--set applies to a YAML config; a written .json config is used as it is")
+            return cfg
+        raw = psd_config.read_yaml(path) or {}
+        return psd_config.validate(apply_settings(raw, settings))
+    except PsdError as e:
+        sys.exit(f"{path}: {e}")
+
+
 def main() -> None:
     from psdfactory import config as psd_config
 
@@ -279,10 +344,23 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2, help="snakemake -j for the datasets (default: %(default)s)")
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1,
                     help="threads per training / evaluation (default: all cores, as the workflow's rules)")
+    ap.add_argument("--set", action="append", metavar="KEY=VALUE",
+                    help="change one train.* or evaluate.* setting of the config for these runs (a dotted key, "
+                    "a YAML value: --set train.epochs=50 --set train.device=cuda); repeatable")
+    ap.add_argument("--write-config", metavar="FILE",
+                    help="write the validated config (schema defaults filled in, --set applied) as JSON and stop: "
+                    "--config FILE then runs it where Snakemake is not installed (a GPU node with the training "
+                    "stack only), with --no-snakemake")
     a = ap.parse_args()
 
     config_path = Path(a.config).resolve()
-    cfg = psd_config.load_config(config_path)
+    cfg = load_config(config_path, a.set or [])
+    if a.write_config:
+        Path(a.write_config).write_text(json.dumps(cfg, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+        print(f"wrote the validated config{' with ' + ', '.join(a.set) if a.set else ''} to {a.write_config}")
+        return
+    if config_path.suffix == ".json" and not a.no_snakemake:
+        sys.exit("a written config (.json) has no Snakefile config to make the datasets with: pass --no-snakemake")
     results = Path(a.results or cfg["results"])
     if not results.is_absolute():
         results = REPO / results
@@ -309,11 +387,7 @@ def main() -> None:
     if missing:
         sys.exit(f"no manifests for {', '.join(sorted(missing))} under {results}: run without --no-snakemake")
 
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True)
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "src", "rules"], cwd=REPO,
-                           capture_output=True, text=True).stdout.strip()
-    meta = {"config": str(Path(a.config)), "command": command, "cpu": cpu,
-            "commit": commit.stdout.strip() + (" (+ uncommitted changes in src/ or rules/)" if dirty else "")}
+    meta = {"config": str(Path(a.config)), "command": command, "cpu": cpu, "gpu": gpu_name(), "commit": commit()}
     # each model's seeds back to back, models in the order of --archs: a partial run holds whole spreads
     photo_sets = sorted(cfg.get("photos") or {})
     kinds = ("train", "eval", "photos") if photo_sets else ("train", "eval")

@@ -64,6 +64,7 @@ def test_a_third_estimator_plugs_in_end_to_end(plugin, dataset, tmp_path):  # no
     assert m["n"] == 2 and np.isfinite(m["overall"]["mae"])
     assert json.loads((tmp_path / "ev" / "metrics.json").read_text())["arch"] == plugin
     b = benchmark(model, dataset, "tiny", batch=2, seconds=0.02, repeats=1, device="cpu")
+    assert [x["device"] for x in b["results"]] == ["cpu"]  # a device named is the only one timed
     r = b["results"][0]
     assert r["paths"]["fast"]["batched"]["images_per_s"] > 0 and "int8" not in r["paths"]  # it offers no int8
     images = sorted(str(p) for p in (dataset / "tiny" / "scenes").glob("*/image.png"))[:3]

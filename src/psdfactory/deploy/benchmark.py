@@ -246,14 +246,14 @@ def benchmark_estimator(est, device: torch.device, results_root: Path | None, da
 
 def benchmark(model_path: Path, results_root: Path, dataset: str, batch: int, seconds: float, repeats: int,
               device: str = "auto") -> dict:
-    """Speed and accuracy of every path on this machine (CPU, and the GPU when present)."""
+    """Speed and accuracy of every path on this machine: `device` auto, the CPU and the GPU when
+    present (the workflow's benchmark); cpu, the CPU only; cuda[:N], that GPU only."""
     from ..learn.runtime import load_estimator, pick_device
 
     est = load_estimator(model_path, "cpu")
     meta = est.meta
-    devices = [torch.device("cpu")]
-    if pick_device(device).type == "cuda":
-        devices.append(torch.device("cuda"))
+    picked = pick_device(device)
+    devices = [picked] if device != "auto" else [torch.device("cpu")] + [picked] * (picked.type == "cuda")
     caps = capability.detect()
     logger.info(f"CPU: {caps.summary()}")
     result = {"arch": meta["arch"], "weights": meta["weights"], "cpu": caps.as_dict(), "results": []}

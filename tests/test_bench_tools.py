@@ -1,0 +1,60 @@
+"""The bench/ scripts that move a run to a GPU node: a dataset copy at the CNNs' input size
+(shrink_results.py) and a recipe changed for the runs of seed_spread.py (--set), written as a
+config that needs no Snakemake (--write-config)."""
+
+import importlib.util
+import json
+
+import numpy as np
+import pytest
+
+from .conftest import REPO
+
+
+def bench_module(name: str):
+    spec = importlib.util.spec_from_file_location(name, REPO / "bench" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_a_shrunk_mask_keeps_ids_and_places_them_by_pixel_centre():
+    shrink_mask = bench_module("shrink_results").shrink_mask
+    mask = np.zeros((8, 8), np.uint16)
+    mask[:4, :4], mask[4:, 4:], mask[0, 7] = 3, 9, 5
+    small = shrink_mask(mask, 4)
+    assert small.shape == (4, 4) and small.dtype == np.uint16
+    assert set(np.unique(small)) <= {0, 3, 5, 9}  # nearest neighbour: no id that was not there
+    assert (small[:2, :2] == 3).all() and (small[2:, 2:] == 9).all() and (small[:2, 2:] == 0).all()
+    assert (shrink_mask(mask, 8) == mask).all()
+    up = shrink_mask(mask, 16)  # any size: each pixel takes the id under its centre
+    assert up[0, 15] == 5 and up[0, 13] == 0 and (up[:8, :8] == 3).all()
+
+
+def test_set_changes_the_recipe_only_and_write_config_gives_a_config_without_snakemake(tmp_path):
+    seed_spread = bench_module("seed_spread")
+    raw = {"train": {"epochs": 8}, "seed": 1}
+    out = seed_spread.apply_settings(raw, ["train.epochs=50", "train.instances.lr=0.01", "evaluate.precision=bf16",
+                                           "train.architectures=[resnet50, efficientnet_b0]"])
+    assert out["train"] == {"epochs": 50, "instances": {"lr": 0.01}, "architectures": ["resnet50", "efficientnet_b0"]}
+    assert out["evaluate"] == {"precision": "bf16"}
+    for bad in ("seed=3", "datasets.train.n_scenes=5", "train=1", "train.epochs", "train.epochs.x=1"):
+        with pytest.raises(SystemExit):
+            seed_spread.apply_settings({"train": {"epochs": 8}}, [bad])
+    written = tmp_path / "cfg.json"
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, str(REPO / "bench" / "seed_spread.py"), "--config",
+                        str(REPO / "config" / "paper-cpu.yaml"), "--set", "train.epochs=50",
+                        "--set", "train.size_cells=0", "--write-config", str(written)],
+                       capture_output=True, text=True, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    cfg = json.loads(written.read_text())
+    assert cfg["train"]["epochs"] == 50 and cfg["train"]["size_cells"] == 0
+    assert cfg["train"]["batch_size"] > 0 and cfg["datasets"]["train"]["n_scenes"] == 1000  # defaults filled in
+    assert seed_spread.load_config(written, []) == cfg  # read back as it is, no validation needed
+    r = subprocess.run([sys.executable, str(REPO / "bench" / "seed_spread.py"), "--config",
+                        str(REPO / "config" / "paper-cpu.yaml"), "--set", "train.epochs=0", "--write-config",
+                        str(tmp_path / "bad.json")], capture_output=True, text=True, cwd=REPO)
+    assert r.returncode != 0 and "epochs" in r.stderr and not (tmp_path / "bad.json").exists()
