@@ -105,3 +105,31 @@ def test_precision_auto_picks_fp32_where_it_is_faster():
     clock = itertools.accumulate(d for d in durations for d in (0.0, d))
     model = nn.Conv2d(3, 4, 3)
     assert faster_cpu_precision(model, 16, 2, lambda out: out.float().sum(), timer=lambda: next(clock)) == "fp32"
+
+
+def test_fp16_training_scales_the_loss_and_skips_a_step_whose_gradients_overflow():
+    """fp16 gradients underflow without loss scaling: optimise_step keeps a GradScaler with the
+    optimiser; a step whose gradients are not finite is skipped and the scale lowered."""
+    import torch
+
+    from psdfactory.learn.runtime import optimise_step
+
+    torch.manual_seed(0)
+    model = torch.nn.Linear(4, 1)
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+    x, dev = torch.randn(8, 4), torch.device("cpu")
+
+    def square(out):
+        return out.float().pow(2).mean()
+
+    before = model.weight.detach().clone()
+    losses = [optimise_step(model, opt, x, square, dev, "fp16", "train.lr") for _ in range(30)]
+    scaler = opt.__dict__["psd_grad_scaler"]
+    assert not torch.equal(model.weight, before) and losses[-1] < losses[0]  # it learns
+    scale, kept = scaler.get_scale(), model.weight.detach().clone()
+    hook = model.weight.register_hook(lambda g: g * float("inf"))  # a finite loss, an infinite gradient
+    optimise_step(model, opt, x, square, dev, "fp16", "train.lr")
+    hook.remove()
+    assert torch.equal(model.weight, kept) and scaler.get_scale() < scale  # skipped, scale lowered
+    optimise_step(model, opt, x, square, dev, "fp32", "train.lr")
+    assert not torch.equal(model.weight, kept)  # fp32 steps as before, without the scaler

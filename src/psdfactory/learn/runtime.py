@@ -84,16 +84,31 @@ def optimise_step(model: nn.Module, opt: torch.optim.Optimizer, x: torch.Tensor,
                   precision: str, lr_key: str) -> float:
     """One optimiser step on the batch `x` (normalised, on `device`): forward under `precision`'s
     autocast, `loss_of(output)`, a clear error naming `lr_key` on a non-finite loss, backward,
-    step. Returns the batch's loss."""
+    step. In fp16 the loss is scaled (`grad_scaler`): fp16 gradients underflow without it, where
+    bf16 has fp32's range. Returns the batch's loss."""
     with autocast(device, precision):
         out = model(x)
     loss = loss_of(out)
     if not torch.isfinite(loss):
         raise PsdError(f"training diverged (non-finite loss); lower {lr_key}")
     opt.zero_grad(set_to_none=True)
-    loss.backward()
-    opt.step()
+    if precision == "fp16":
+        scaler = grad_scaler(opt, device)
+        scaler.scale(loss).backward()
+        scaler.step(opt)  # skipped, and the scale lowered, where a gradient overflowed
+        scaler.update()
+    else:
+        loss.backward()
+        opt.step()
     return float(loss.detach())
+
+
+def grad_scaler(opt: torch.optim.Optimizer, device: torch.device) -> torch.amp.GradScaler:
+    """The loss scaler of fp16 training with `opt`, made at its first step and kept with it."""
+    scaler = opt.__dict__.get("psd_grad_scaler")
+    if scaler is None:
+        scaler = opt.__dict__["psd_grad_scaler"] = torch.amp.GradScaler(device.type)
+    return scaler
 
 
 LR_SCHEDULES = ("plateau", "onecycle")
