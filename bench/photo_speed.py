@@ -47,9 +47,9 @@ from pathlib import Path
 from psdfactory.config import PREDICT_RUNTIMES, PREDICT_TILE_PX
 
 REPO = Path(__file__).resolve().parents[1]
-PHOTO = REPO.parent / "shared" / "real" / "barton_creek.jpg"
-REFERENCE_MASK = REPO.parent / "shared" / "real" / "barton_creek_mask.png"
-PHOTO_MM_PER_PX = 0.288  # ../shared/real/README.md
+PHOTO = REPO / "data" / "photos" / "real" / "barton_creek.jpg"  # the repository's copy of ../shared/real
+REFERENCE_MASK = PHOTO.with_name("barton_creek_mask.png")
+PHOTO_MM_PER_PX = 0.288  # data/photos/real/README.md
 
 
 def make_photo(src: Path, mp: float, out: Path) -> tuple[Path, float]:
@@ -102,7 +102,7 @@ def one_photo(a: argparse.Namespace) -> dict:
             return super().read(maps, mm_per_px)
 
     if a.model:
-        est = predict.load_predictor(Path(a.model), runtime=a.runtime)
+        est = predict.load_predictor(Path(a.model), device=a.device, runtime=a.runtime)
         if ref is not None:
             est.__class__ = ReferenceMaps
     else:
@@ -111,7 +111,8 @@ def one_photo(a: argparse.Namespace) -> dict:
                 "weighting": "number", "maps": ["foreground", "boundary", "distance"], "readouts": {}}
         torch.manual_seed(0)
         net = net_from_meta(meta).eval()
-        est = ReferenceMaps(meta, torch_runner(InstanceMaps(net)), net)
+        dev = torch.device(a.device)
+        est = ReferenceMaps(meta, torch_runner(InstanceMaps(net).to(dev), dev), net)
     timing = {"network_s": 0.0, "post_s": 0.0}
     outputs, read = est.outputs, est.read
 
@@ -155,7 +156,7 @@ def one_photo(a: argparse.Namespace) -> dict:
             "tiles": len(predict.tile_spans(nh, a.tile, est.tile_margin_px))
             * len(predict.tile_spans(nw, a.tile, est.tile_margin_px)),
             "seconds": seconds, "cpu_s": cpu, "photo_mp_per_s": w * h / 1e6 / seconds, **timing,
-            "runtime": getattr(est, "engine", "torch"),
+            "runtime": getattr(est, "engine", "torch"), "device": a.device,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "rss_before_mb": base_rss,
             "grains": n, "d50_mm": row["d50_mm"], "threads": torch.get_num_threads()}
 
@@ -163,11 +164,12 @@ def one_photo(a: argparse.Namespace) -> dict:
 def run_one(a: argparse.Namespace, photo: Path, mm: float, maps: Path | None, runtime: str) -> dict | None:
     """One photo through predict_one in a fresh process; its row, printed."""
     cmd = [sys.executable, __file__, "--one", "1", "--photo", str(photo), "--tile", str(a.tile), "--runtime", runtime,
-           "--auto-scale" if a.auto_scale else "--no-auto-scale"]
+           "--auto-scale" if a.auto_scale else "--no-auto-scale", "--device", a.device]
     cmd += ["--model", a.model] if a.model else []
     cmd += ["--maps", str(maps)] if maps else []
     cmd += ["--mm-per-px", str(mm)] if a.true_scale else []
-    env = dict(os.environ, PYTHONPATH=str(REPO / "src"))
+    path = [str(REPO / "src"), os.environ.get("PYTHONPATH", "")]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, path)))
     r = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if r.returncode:
         print(f"{photo.name}: failed ({r.returncode}): {r.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
@@ -175,7 +177,8 @@ def run_one(a: argparse.Namespace, photo: Path, mm: float, maps: Path | None, ru
     row = json.loads(r.stdout.strip().splitlines()[-1])
     row["bytes_per_network_px"] = (row["peak_rss_mb"] - row["rss_before_mb"]) * 2**20 / (row["network_mp"] * 1e6)
     print(f"{row['photo']:<26} {row['photo_mp']:5.1f} MP photo, {row['network_mp']:5.1f} MP at the network's "
-          f"scale in {row['tiles']:2d} tile(s), read at {row['read_scale']:.2f}x it, {row['runtime']}: "
+          f"scale in {row['tiles']:2d} tile(s), read at {row['read_scale']:.2f}x it, "
+          f"{row['runtime']} on {row['device']}: "
           f"{row['seconds']:6.1f} s = "
           f"{row['photo_mp_per_s']:.3f} MP/s, CPU {row['cpu_s']:.1f} s (network {row['network_s']:.1f} s, "
           f"post-processing {row['post_s']:.1f} s), peak RSS {row['peak_rss_mb']:,.0f} MB "
@@ -219,6 +222,7 @@ def main() -> None:
     ap.add_argument("--auto-scale", action=argparse.BooleanOptionalAction, default=False,
                     help="predict --auto-scale (photos whose grains look larger than the validation grains read "
                     "coarser; default: off, as predict)")
+    ap.add_argument("--device", default="cpu", help="the network's device: cpu, cuda (default: %(default)s)")
     ap.add_argument("--repeats", type=int, default=1, help="runs of each photo and runtime; medians are printed")
     ap.add_argument("--workdir", help="where the photos are made (default: a temporary folder)")
     ap.add_argument("--out", help="also write the rows to this JSON file")

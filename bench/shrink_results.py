@@ -17,8 +17,9 @@ size (224 or 299 px) anyway, so this writes what they read and nothing more:
   size task (`train.size_cells: 0`) reads is the images and the scene manifests alone.
 
 The instance estimator should not be trained on such a copy: it reads grains at their own
-scale, which the resize changes. Scenes are read from the manifests (their splits as they are);
---splits keeps only some.
+scale, which the resize changes: copy its datasets at their own size (--size = their resolution)
+for that. Scenes are read from the manifests (their splits as they are); --splits keeps only some,
+--per-split N the first N of each (a small set for a smoke test).
 
     .venv/bin/python bench/shrink_results.py --results results_paper_cpu --datasets train train_cycles \\
         --size 299 --jpeg 92 --out .carry/results_paper_cpu
@@ -50,7 +51,8 @@ def shrink_mask(mask: np.ndarray, size: int) -> np.ndarray:
 
 
 def shrink_dataset(results: Path, dataset: str, out: Path, size: int, jpeg: int | None,
-                   splits: tuple[str, ...] | None, particle_columns: tuple[str, ...] | None) -> tuple[int, int]:
+                   splits: tuple[str, ...] | None, particle_columns: tuple[str, ...] | None,
+                   per_split: int | None = None) -> tuple[int, int]:
     """Writes `out/<dataset>/...` (masks and particles only with `particle_columns`); returns
     (scenes, bytes written)."""
     import pyarrow as pa
@@ -64,7 +66,12 @@ def shrink_dataset(results: Path, dataset: str, out: Path, size: int, jpeg: int 
     scenes = read_scenes(results, dataset)
     if splits:
         scenes = scenes.filter(pc.is_in(scenes.column("split"), pa.array(list(splits))))
-    rows = scenes.to_pylist()
+    rows = scenes.sort_by("index").to_pylist()
+    if per_split:
+        kept: dict[str, list[dict]] = {}
+        for r in rows:
+            kept.setdefault(r["split"], []).append(r)
+        rows = [r for split_rows in kept.values() for r in split_rows[:per_split]]
     suffix = ".jpg" if jpeg else ".png"
     written, t0 = 0, time.monotonic()
     for i, r in enumerate(rows):
@@ -116,6 +123,7 @@ def main() -> None:
     ap.add_argument("--splits", nargs="+", help="only these splits (default: all)")
     ap.add_argument("--particle-columns", nargs="+", default=list(DEFAULT_PARTICLE_COLUMNS),
                     help="particle manifest columns kept (default: %(default)s)")
+    ap.add_argument("--per-split", type=int, metavar="N", help="only the first N scenes of each split")
     ap.add_argument("--no-masks", action="store_true", help="copy neither masks nor particle manifests")
     a = ap.parse_args()
     if a.jpeg is not None and not 1 <= a.jpeg <= 100:
@@ -126,7 +134,7 @@ def main() -> None:
     total = 0
     for ds in a.datasets:
         n, b = shrink_dataset(results, ds, out, a.size, a.jpeg, tuple(a.splits) if a.splits else None,
-                              None if a.no_masks else tuple(a.particle_columns))
+                              None if a.no_masks else tuple(a.particle_columns), a.per_split)
         total += b
         print(f"{ds}: {n} scenes, {b / 2**20:.1f} MiB", flush=True)
     print(f"written under {out}: {total / 2**20:.1f} MiB", flush=True)
