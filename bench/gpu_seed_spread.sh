@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The seed spread of several architectures at once on one GPU node, then their CUDA inference speed.
 #
-# One GPU runs small models far below its capacity, so each architecture's seeds run in a
-# bench/seed_spread.py process of its own, side by side (each with CPU threads of its own), under
-# a time limit; a process cut short still leaves the spread of the seeds it finished. Then
+# One GPU runs small models far below its capacity, so every (architecture, seed) trains and is
+# evaluated in a bench/seed_spread.py process of its own, all side by side (each with CPU threads
+# of its own), under a time limit; then seed_spread.py --summarise-only gathers each
+# architecture's finished runs into its spread (a run cut short by the limit is left out). Then
 # bench/inference_benchmark.py --device cuda times every model with the first seed's trained
 # weights (accuracy of each path on the test split; BENCH_DEVICE=cpu to time the CPU instead). Needs only the training stack (PyTorch,
 # torchvision, pyarrow, scipy, scikit-image, pyyaml): give it a config that
@@ -14,7 +15,7 @@
 #   bench/gpu_seed_spread.sh .carry/paper_gpu.json .carry/results_paper_cpu /tmp/gpu 420 \
 #       "resnet50 inception_v3 efficientnet_b0" 2025 2026 2027
 #
-# Writes OUT/<arch>/spread.{md,json}, OUT/<arch>.log, OUT/benchmark.{txt,json}.
+# Writes OUT/<arch>/spread.{md,json}, OUT/<arch>-<seed>.log, OUT/benchmark.{txt,json}.
 set -u
 if [ $# -lt 6 ]; then
     sed -n '2,16p' "$0" >&2
@@ -25,18 +26,23 @@ shift 5
 here=$(cd "$(dirname "$0")/.." && pwd)
 export PYTHONPATH="$here/src${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 py=${PYTHON:-python3}
-n=$(echo "$archs" | wc -w)
+n=$(( $(echo "$archs" | wc -w) * $# ))
 threads=$(( ($(nproc) - 1) / n ))
 [ "$threads" -ge 1 ] || threads=1
 mkdir -p "$out"
-echo "$(date -u +%FT%TZ) $n architectures side by side, $threads CPU threads each, ${seconds} s at most; seeds $*"
+echo "$(date -u +%FT%TZ) $n runs side by side, $threads CPU threads each, ${seconds} s at most"
 for arch in $archs; do
-    timeout "$seconds" "$py" "$here/bench/seed_spread.py" --config "$config" --no-snakemake --results "$results" \
-        --archs "$arch" --seed-list "$@" --out "$out/$arch" --threads "$threads" > "$out/$arch.log" 2>&1 &
+    for seed in "$@"; do
+        timeout "$seconds" "$py" "$here/bench/seed_spread.py" --config "$config" --no-snakemake --results "$results" \
+            --archs "$arch" --seed-list "$seed" --out "$out/runs/$arch-$seed" --threads "$threads" \
+            > "$out/$arch-$seed.log" 2>&1 &
+    done
 done
 wait
 for arch in $archs; do
-    echo "== $arch"; tail -n 4 "$out/$arch.log"
+    echo "== $arch"
+    "$py" "$here/bench/seed_spread.py" --config "$config" --no-snakemake --results "$results" --archs "$arch" \
+        --seed-list "$@" --out "$out/$arch" --summarise-only 2>&1 | grep -v "^\s*$" | tail -n 6
 done
 models=$(mktemp -d)
 for arch in $archs; do  # the first seed's model of each, where the layout of inference_benchmark --results

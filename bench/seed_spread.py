@@ -344,6 +344,9 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2, help="snakemake -j for the datasets (default: %(default)s)")
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1,
                     help="threads per training / evaluation (default: all cores, as the workflow's rules)")
+    ap.add_argument("--summarise-only", action="store_true",
+                    help="train and evaluate nothing: the spread of the finished runs of this recipe (e.g. runs "
+                    "made side by side, one seed per process, each with its own --out)")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="change one train.* or evaluate.* setting of the config for these runs (a dotted key, "
                     "a YAML value: --set train.epochs=50 --set train.device=cuda); repeatable")
@@ -369,8 +372,8 @@ def main() -> None:
                  "pass --no-snakemake to use that folder's datasets as they are")
     out = Path(a.out) if a.out else results / "seed_spread"
     seeds = a.seed_list or [cfg["seed"] + i for i in range(a.seeds)]
-    if len(set(seeds)) != len(seeds) or len(seeds) < 2:
-        sys.exit(f"need at least two different seeds, got {seeds}")
+    if len(set(seeds)) != len(seeds):
+        sys.exit(f"a seed given twice: {seeds}")
     archs = a.archs or list(cfg["train"]["architectures"])
     datasets = psd_config.evaluation_datasets(cfg)
     eval_precision = cfg["evaluate"]["precision"]
@@ -405,6 +408,13 @@ def main() -> None:
             pjson = json.dumps(params, sort_keys=True, separators=(",", ":"))
             stamp = run / "params.json"
             same = stamp.is_file() and stamp.read_text(encoding="utf-8") == pjson
+            if a.summarise_only:
+                done = same and (run / "eval" / "metrics.json").is_file() and all(
+                    (run / "eval" / "photos" / n / "metrics.json").is_file() for n in photo_sets)
+                if not done:
+                    print(f"    seed {seed} {ARCH_LABELS.get(arch, arch)}: no finished run of this recipe, left out",
+                          flush=True)
+                    continue
             if not same and (run / "model.pt").exists():  # another recipe's model: train anew
                 for p in (run / "model.pt", run / "history.csv", run / "eval"):
                     shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
