@@ -6,7 +6,8 @@
 # of its own), under a time limit; then seed_spread.py --summarise-only gathers each
 # architecture's finished runs into its spread (a run cut short by the limit is left out). Then
 # bench/inference_benchmark.py --device cuda times every model with the first seed's trained
-# weights (accuracy of each path on the test split; BENCH_DEVICE=cpu to time the CPU instead). Needs only the training stack (PyTorch,
+# weights (accuracy of each path on the test split; BENCH_DEVICE=cpu times the CPU instead, none
+# skips it). Needs only the training stack (PyTorch,
 # torchvision, pyarrow, scipy, scikit-image, pyyaml): give it a config that
 # `seed_spread.py --write-config` wrote where Snakemake is installed, and a results folder with
 # the datasets (e.g. from bench/shrink_results.py).
@@ -44,6 +45,10 @@ for arch in $archs; do
     "$py" "$here/bench/seed_spread.py" --config "$config" --no-snakemake --results "$results" --archs "$arch" \
         --seed-list "$@" --out "$out/$arch" --summarise-only 2>&1 | grep -v "^\s*$" | tail -n 6
 done
+if [ "${BENCH_DEVICE:-cuda}" = none ]; then
+    echo "$(date -u +%FT%TZ) done (no benchmark: BENCH_DEVICE=none)"
+    exit 0
+fi
 models=$(mktemp -d)
 for arch in $archs; do  # the first seed's model of each, where the layout of inference_benchmark --results
     m="$results/seed_spread/$1/$arch/model.pt"
