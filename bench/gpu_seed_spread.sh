@@ -18,12 +18,11 @@
 #
 # Writes OUT/<arch>/spread.{md,json}, OUT/<arch>-<seed>.log, OUT/benchmark.{txt,json}.
 set -u
-if [ $# -lt 6 ]; then
-    sed -n '2,16p' "$0" >&2
-    exit 2
-fi
+usage() { sed -n '2,19p' "$0" >&2; exit 2; }
+[ $# -ge 6 ] || usage
 config=$1 results=$2 out=$3 seconds=$4 archs=$5
 shift 5
+[ -n "${archs// /}" ] || usage
 here=$(cd "$(dirname "$0")/.." && pwd)
 export PYTHONPATH="$here/src${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 py=${PYTHON:-python3}
@@ -50,6 +49,7 @@ if [ "${BENCH_DEVICE:-cuda}" = none ]; then
     exit 0
 fi
 models=$(mktemp -d)
+trap 'rm -rf "$models"' EXIT
 for arch in $archs; do  # the first seed's model of each, where the layout of inference_benchmark --results
     m="$results/seed_spread/$1/$arch/model.pt"
     [ -f "$m" ] && mkdir -p "$models/models/$arch" && ln -s "$(cd "$(dirname "$m")" && pwd)/model.pt" "$models/models/$arch/"

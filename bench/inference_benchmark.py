@@ -31,7 +31,7 @@ from psdfactory.learn.capability import detect
 from psdfactory.learn.cnn import CnnRegressor
 from psdfactory.learn.models import TargetStats, build_model
 from psdfactory.learn.runtime import pick_device, torch_runner
-from psdfactory.paper import TABLE3, TABLE3_CPU
+from psdfactory.paper import TABLE3, TABLE3_CPU, TABLE3_GPU
 
 
 def main() -> None:
@@ -53,7 +53,7 @@ def main() -> None:
     except PsdError as e:
         raise SystemExit(f"--device {a.device}: {e}") from None
     gpu = dev.type == "cuda"
-    paper_key, paper_where = ("gpu_fps", "RTX 3060 GPU") if gpu else ("cpu_fps", TABLE3_CPU)
+    paper_key, paper_where = ("gpu_fps", TABLE3_GPU) if gpu else ("cpu_fps", TABLE3_CPU)
     print(f"CPU: {detect().summary()}")
     if gpu:
         print(f"GPU: {torch.cuda.get_device_name(dev)}; PyTorch {torch.__version__}, CUDA {torch.version.cuda}")

@@ -49,7 +49,17 @@ from psdfactory.config import PREDICT_RUNTIMES, PREDICT_TILE_PX
 REPO = Path(__file__).resolve().parents[1]
 PHOTO = REPO / "data" / "photos" / "real" / "barton_creek.jpg"  # the repository's copy of ../shared/real
 REFERENCE_MASK = PHOTO.with_name("barton_creek_mask.png")
-PHOTO_MM_PER_PX = 0.288  # data/photos/real/README.md
+
+
+def photo_scale(photo: Path) -> float:
+    """The photo's mm per px, from labels.csv beside it (the photo set's reference table)."""
+    import csv
+
+    with open(photo.with_name("labels.csv"), newline="", encoding="utf-8") as f:
+        return next(float(r["mm_per_px"]) for r in csv.DictReader(f) if r["image"] == photo.name)
+
+
+PHOTO_MM_PER_PX = photo_scale(PHOTO)
 
 
 def make_photo(src: Path, mp: float, out: Path) -> tuple[Path, float]:
@@ -237,6 +247,13 @@ def main() -> None:
     if a.one:
         print(json.dumps(one_photo(a)))
         return
+    from psdfactory import PsdError
+    from psdfactory.learn.runtime import pick_device
+
+    try:
+        pick_device(a.device)
+    except PsdError as e:
+        raise SystemExit(f"--device {a.device}: {e}") from None
     work = Path(a.workdir or tempfile.mkdtemp(prefix="photo_speed-"))
     work.mkdir(parents=True, exist_ok=True)
     maps = None if (a.model and not a.reference_maps) else reference_maps(REFERENCE_MASK, work / "reference_maps.npy")

@@ -306,7 +306,10 @@ def apply_settings(raw: dict, settings: list[str]) -> dict:
             node = node.setdefault(k, {})
             if not isinstance(node, dict):
                 sys.exit(f"--set {item!r}: {k} is not a section of the config")
-        node[leaf] = yaml.safe_load(value)
+        try:
+            node[leaf] = yaml.safe_load(value)
+        except yaml.YAMLError as e:
+            sys.exit(f"--set {item!r}: the value is not YAML ({str(e).splitlines()[0]})")
     return raw
 
 
@@ -316,16 +319,20 @@ def load_config(path: Path, settings: list[str]) -> dict:
     from psdfactory import PsdError
     from psdfactory import config as psd_config
 
-    try:
-        if path.suffix == ".json":
+    if path.suffix == ".json":
+        if settings:
+            sys.exit("--set applies to a YAML config; a written .json config is used as it is")
+        try:
             cfg = json.loads(path.read_text(encoding="utf-8"))
-            if settings:
-                sys.exit("--set applies to a YAML config; a written .json config is used as it is")
-            return cfg
-        raw = psd_config.read_yaml(path) or {}
-        return psd_config.validate(apply_settings(raw, settings))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            sys.exit(f"{path}: not a config that --write-config wrote ({e})")
+        if not isinstance(cfg, dict) or not isinstance(cfg.get("train"), dict):
+            sys.exit(f"{path}: not a config that --write-config wrote (no train section)")
+        return cfg
+    try:
+        return psd_config.load_config(path, lambda raw: apply_settings(raw, settings))
     except PsdError as e:
-        sys.exit(f"{path}: {e}")
+        sys.exit(str(e))
 
 
 def main() -> None:
@@ -359,7 +366,7 @@ def main() -> None:
     config_path = Path(a.config).resolve()
     cfg = load_config(config_path, a.set or [])
     if a.write_config:
-        Path(a.write_config).write_text(json.dumps(cfg, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+        Path(a.write_config).write_text(json.dumps(cfg, indent=1) + "\n", encoding="utf-8")
         print(f"wrote the validated config{' with ' + ', '.join(a.set) if a.set else ''} to {a.write_config}")
         return
     if config_path.suffix == ".json" and not a.no_snakemake:
@@ -384,7 +391,7 @@ def main() -> None:
 
     print(f"seeds {seeds}; models {', '.join(archs)}; evaluated on {', '.join(datasets)}; results {results}",
           flush=True)
-    if not a.no_snakemake:
+    if not a.no_snakemake and not a.summarise_only:
         make_datasets(config_path, a.jobs, out / "snakemake.log")
     missing = [d for d in {*datasets, *cfg["train"]["datasets"]} if not (results / d / "manifest" / "scenes").is_dir()]
     if missing:
@@ -398,6 +405,7 @@ def main() -> None:
     progress = Progress(jobs)
     psd = psdfactory_cmd()
     metrics: dict = {}  # arch -> seed -> metrics.json
+    left_out = 0  # --summarise-only: runs not finished
     train_minutes: dict = {}
     for arch in archs:
         for seed in seeds:
@@ -409,11 +417,12 @@ def main() -> None:
             stamp = run / "params.json"
             same = stamp.is_file() and stamp.read_text(encoding="utf-8") == pjson
             if a.summarise_only:
-                done = same and (run / "eval" / "metrics.json").is_file() and all(
-                    (run / "eval" / "photos" / n / "metrics.json").is_file() for n in photo_sets)
+                done = same and all((run / f).is_file() for f in (
+                    "model.pt", "eval/metrics.json", *(f"eval/photos/{n}/metrics.json" for n in photo_sets)))
                 if not done:
                     print(f"    seed {seed} {ARCH_LABELS.get(arch, arch)}: no finished run of this recipe, left out",
                           flush=True)
+                    left_out += 1
                     continue
             if not same and (run / "model.pt").exists():  # another recipe's model: train anew
                 for p in (run / "model.pt", run / "history.csv", run / "eval"):
@@ -474,7 +483,7 @@ def main() -> None:
                                      for d in datasets if d in r), flush=True)
             write_summary(out, meta, archs, seeds, datasets, cfg, metrics, train_minutes, complete=False)
 
-    md = write_summary(out, meta, archs, seeds, datasets, cfg, metrics, train_minutes, complete=True)
+    md = write_summary(out, meta, archs, seeds, datasets, cfg, metrics, train_minutes, complete=not left_out)
 
     print(f"\n{md}\nwritten: {out / 'spread.md'}, {out / 'spread.json'}", flush=True)
 

@@ -9,12 +9,13 @@ size (224 or 299 px) anyway, so this writes what they read and nothing more:
 - each image resized (area-averaged, as `learn.data.to_input` does) to --size px, as PNG or, with
   --jpeg QUALITY, as JPEG (4:4:4; lossy: say so wherever a figure trained on it is quoted);
 - each mask resized by nearest neighbour (mask ids are labels) to the same size, as 16-bit PNG;
-- the scene manifests with `image_path`, `mask_path`, `resolution` and `mm_per_px` rewritten to
+- the scene manifests with `image_path` (its suffix), `resolution` and `mm_per_px` rewritten to
   match (a particle's size in pixels stays size_mm / mm_per_px), every label unchanged;
 - the particle manifests with the columns the training and evaluation read (`--particle-columns`),
   sizes as float32;
-- with --no-masks, neither masks nor particle manifests: what a CNN regressor without the dense
-  size task (`train.size_cells: 0`) reads is the images and the scene manifests alone.
+- with --no-masks, neither masks nor particle manifests (`mask_path` then names no file): what a
+  CNN regressor without the dense size task (`train.size_cells: 0`) reads is the images and the
+  scene manifests alone.
 
 The instance estimator should not be trained on such a copy: it reads grains at their own
 scale, which the resize changes: copy its datasets at their own size (--size = their resolution)
@@ -33,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-DEFAULT_PARTICLE_COLUMNS = ("particle_id", "size_mm", "z_mm")
+from psdfactory.manifest import PARTICLE_READ_COLUMNS
 
 
 def shrink_image(rgb: np.ndarray, size: int) -> np.ndarray:
@@ -67,7 +68,7 @@ def shrink_dataset(results: Path, dataset: str, out: Path, size: int, jpeg: int 
     if splits:
         scenes = scenes.filter(pc.is_in(scenes.column("split"), pa.array(list(splits))))
     rows = scenes.sort_by("index").to_pylist()
-    if per_split:
+    if per_split is not None:
         kept: dict[str, list[dict]] = {}
         for r in rows:
             kept.setdefault(r["split"], []).append(r)
@@ -76,6 +77,8 @@ def shrink_dataset(results: Path, dataset: str, out: Path, size: int, jpeg: int 
     written, t0 = 0, time.monotonic()
     for i, r in enumerate(rows):
         rgb = read_png(results / r["image_path"])
+        if rgb.shape[0] != rgb.shape[1]:
+            raise SystemExit(f"{r['image_path']}: {rgb.shape[1]} x {rgb.shape[0]} px; the factory's images are square")
         img_rel = str(Path(r["image_path"]).with_suffix(suffix))
         dst = out / img_rel
         dst.parent.mkdir(parents=True, exist_ok=True)
@@ -121,11 +124,13 @@ def main() -> None:
     ap.add_argument("--size", type=int, required=True, help="image and mask size in px (e.g. 299: InceptionV3's)")
     ap.add_argument("--jpeg", type=int, metavar="QUALITY", help="write images as JPEG of this quality (else PNG)")
     ap.add_argument("--splits", nargs="+", help="only these splits (default: all)")
-    ap.add_argument("--particle-columns", nargs="+", default=list(DEFAULT_PARTICLE_COLUMNS),
+    ap.add_argument("--particle-columns", nargs="+", default=list(PARTICLE_READ_COLUMNS),
                     help="particle manifest columns kept (default: %(default)s)")
     ap.add_argument("--per-split", type=int, metavar="N", help="only the first N scenes of each split")
     ap.add_argument("--no-masks", action="store_true", help="copy neither masks nor particle manifests")
     a = ap.parse_args()
+    if a.per_split is not None and a.per_split < 1:
+        ap.error("--per-split takes a count of at least 1")
     if a.jpeg is not None and not 1 <= a.jpeg <= 100:
         ap.error("--jpeg takes a quality from 1 to 100")
     results, out = Path(a.results), Path(a.out)

@@ -8,6 +8,7 @@ import sys
 import pytest
 import torch
 
+from psdfactory import PsdError
 from psdfactory.deploy.benchmark import candidates
 from psdfactory.learn import capability
 
@@ -112,7 +113,7 @@ def test_fp16_training_scales_the_loss_and_skips_a_step_whose_gradients_overflow
     optimiser; a step whose gradients are not finite is skipped and the scale lowered."""
     import torch
 
-    from psdfactory.learn.runtime import optimise_step
+    from psdfactory.learn.runtime import grad_scaler, optimise_step, restore_scaler, scaler_state
 
     torch.manual_seed(0)
     model = torch.nn.Linear(4, 1)
@@ -124,7 +125,7 @@ def test_fp16_training_scales_the_loss_and_skips_a_step_whose_gradients_overflow
 
     before = model.weight.detach().clone()
     losses = [optimise_step(model, opt, x, square, dev, "fp16", "train.lr") for _ in range(30)]
-    scaler = opt.__dict__["psd_grad_scaler"]
+    scaler = grad_scaler(opt, dev)
     assert not torch.equal(model.weight, before) and losses[-1] < losses[0]  # it learns
     scale, kept = scaler.get_scale(), model.weight.detach().clone()
     hook = model.weight.register_hook(lambda g: g * float("inf"))  # a finite loss, an infinite gradient
@@ -133,3 +134,13 @@ def test_fp16_training_scales_the_loss_and_skips_a_step_whose_gradients_overflow
     assert torch.equal(model.weight, kept) and scaler.get_scale() < scale  # skipped, scale lowered
     optimise_step(model, opt, x, square, dev, "fp32", "train.lr")
     assert not torch.equal(model.weight, kept)  # fp32 steps as before, without the scaler
+    saved = scaler_state(opt)  # the resumable checkpoint keeps it (plain numbers: weights_only loads it)
+    again = torch.optim.SGD(model.parameters(), lr=0.1)
+    assert scaler_state(again) is None
+    restore_scaler(again, saved)
+    assert grad_scaler(again, dev).get_scale() == scaler.get_scale()
+    hook = model.weight.register_hook(lambda g: g * float("inf"))  # overflowing for good: a clear error
+    with pytest.raises(PsdError, match="fp16 training stalled"):
+        for _ in range(40):
+            optimise_step(model, again, x, square, dev, "fp16", "train.lr")
+    hook.remove()

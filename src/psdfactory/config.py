@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
+from collections.abc import Callable
 from pathlib import Path
 
 from . import PsdError
@@ -94,7 +95,9 @@ def _short(e: Exception) -> str:
     return msg.splitlines()[0] if msg else str(e)
 
 
-def load_config(path: Path) -> dict:
+def load_config(path: Path, edit: Callable[[dict], dict] | None = None) -> dict:
+    """The config file, validated (schema defaults filled in); `edit` changes the raw mapping
+    first (e.g. bench/seed_spread.py's --set)."""
     import yaml
 
     if not Path(path).is_file():
@@ -106,7 +109,7 @@ def load_config(path: Path) -> dict:
     if not isinstance(config, dict):
         raise PsdError(f"{path} must hold a mapping of config keys")
     try:
-        return validate(config)
+        return validate(edit(config) if edit else config)
     except PsdError as e:
         raise PsdError(f"{path}: {e}") from None
 

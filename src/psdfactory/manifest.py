@@ -123,8 +123,10 @@ def group_by_scene(table: pa.Table, columns: list[str] | tuple[str, ...]) -> dic
     return {str(u): {k: v[g] for k, v in cols.items()} for u, g in zip(uniq, np.split(order, start[1:]), strict=True)}
 
 
-def read_particles(results_root: Path, dataset: str, columns: tuple[str, ...] = ("particle_id", "size_mm", "z_mm")
-                   ) -> dict:
+PARTICLE_READ_COLUMNS = ("particle_id", "size_mm", "z_mm")  # what training and evaluation read of a particle
+
+
+def read_particles(results_root: Path, dataset: str, columns: tuple[str, ...] = PARTICLE_READ_COLUMNS) -> dict:
     """scene_id → {column: array} from a dataset's particle manifest."""
     import pyarrow.parquet as pq
 

@@ -25,3 +25,4 @@ TABLE3 = {
     "efficientnet_b0": {"gpu_fps": 37.75, "cpu_fps": 21.51, "params_m": 5.3},
 }
 TABLE3_CPU = "AMD Ryzen 7 5800H, 8 cores"
+TABLE3_GPU = "NVIDIA RTX 3060"

@@ -15,7 +15,7 @@ from . import PsdError, __version__
 from .config import dataset_render, evaluation_datasets, main_training_dataset, rerender_splits, train_params
 from .io import atomic_path, copy_file, pyplot, read_json, save_figure
 from .manifest import read_shards
-from .paper import TABLE2, TABLE2_TEST, TABLE3, TABLE3_CPU
+from .paper import TABLE2, TABLE2_TEST, TABLE3, TABLE3_CPU, TABLE3_GPU
 from .psd import NAMES
 
 
@@ -862,7 +862,7 @@ def paper_tables(config: dict, metrics: dict[str, dict], bench: dict[str, dict],
     else:
         here = f"{ds}'s test scenes"
     cpus = "; ".join(sorted({b["cpu"]["summary"] for b in bench.values() if "cpu" in b})) or "not recorded"
-    note = (f"The paper's Table 2 is on {TABLE2_TEST}, its Table 3 on an RTX 3060 and an {TABLE3_CPU}; this run's "
+    note = (f"The paper's Table 2 is on {TABLE2_TEST}, its Table 3 on an {TABLE3_GPU} and an {TABLE3_CPU}; this run's "
             f"figures are on {here} and this machine's CPU ({cpus}). Figures compare only where the distributions "
             "match: config/paper-cpu.yaml and config/paper.yaml have the paper's. The ceilings say what a perfect "
             "measurement of this run's images would read.")

@@ -23,7 +23,7 @@ from torch import nn
 
 from .. import PsdError
 from ..io import atomic_path
-from .runtime import LrSchedule, load_checkpoint, save_model, write_torch
+from .runtime import LrSchedule, load_checkpoint, restore_scaler, save_model, scaler_state, write_torch
 
 logger = logging.getLogger(__name__)
 HISTORY_COLUMNS = ("epoch", "train_loss", "val_loss", "val_mae_mm", "lr", "seconds")
@@ -83,6 +83,7 @@ def _state(task: FitTask, fp: str, epoch: int, history: list[dict], best: float,
         "best": float(best), "best_epoch": int(best_epoch), "stale": int(stale),
         "modules": {k: m.state_dict() for k, m in {"model": task.model, **task.modules}.items()},
         "generators": {k: g.get_state() for k, g in task.generators.items()},
+        "grad_scaler": scaler_state(task.optimizer),
     }
 
 
@@ -98,6 +99,7 @@ def _resume(task: FitTask, path: Path, fp: str, name: str) -> tuple[int, list[di
     for k, m in {"model": task.model, **task.modules}.items():
         m.load_state_dict(ck["modules"][k])
     task.optimizer.load_state_dict(ck["optimizer"])
+    restore_scaler(task.optimizer, ck.get("grad_scaler"))
     task.schedule.load_state_dict(ck["scheduler"])
     for k, g in task.generators.items():
         g.set_state(ck["generators"][k])

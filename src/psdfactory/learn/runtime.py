@@ -97,18 +97,37 @@ def optimise_step(model: nn.Module, opt: torch.optim.Optimizer, x: torch.Tensor,
         scaler.scale(loss).backward()
         scaler.step(opt)  # skipped, and the scale lowered, where a gradient overflowed
         scaler.update()
+        if scaler.get_scale() < MIN_LOSS_SCALE:  # every step overflows: no step is taken any more
+            raise PsdError(f"fp16 training stalled: the gradients overflow at every step (loss scale "
+                           f"{scaler.get_scale():.2g}); train in bf16 or fp32 (train.precision), or lower {lr_key}")
     else:
         loss.backward()
         opt.step()
     return float(loss.detach())
 
 
-def grad_scaler(opt: torch.optim.Optimizer, device: torch.device) -> torch.amp.GradScaler:
-    """The loss scaler of fp16 training with `opt`, made at its first step and kept with it."""
-    scaler = opt.__dict__.get("psd_grad_scaler")
-    if scaler is None:
-        scaler = opt.__dict__["psd_grad_scaler"] = torch.amp.GradScaler(device.type)
-    return scaler
+MIN_LOSS_SCALE = 2.0 ** -10  # fp16's loss scale starts at 2^16 and halves at each overflowing step
+
+
+def grad_scaler(opt: torch.optim.Optimizer, device: torch.device | str) -> torch.amp.GradScaler:
+    """The loss scaler of fp16 training with `opt`, made at its first step and kept with it (in
+    the resumable checkpoint too: `scaler_state`, `restore_scaler`)."""
+    held = opt.__dict__.get("psd_grad_scaler")
+    if held is None:
+        kind = torch.device(device).type
+        held = opt.__dict__["psd_grad_scaler"] = (kind, torch.amp.GradScaler(kind))
+    return held[1]
+
+
+def scaler_state(opt: torch.optim.Optimizer) -> dict | None:
+    """{device, state} of `opt`'s loss scaler (plain numbers), None where it has none."""
+    held = opt.__dict__.get("psd_grad_scaler")
+    return None if held is None else {"device": held[0], "state": held[1].state_dict()}
+
+
+def restore_scaler(opt: torch.optim.Optimizer, saved: dict | None) -> None:
+    if saved:
+        grad_scaler(opt, saved["device"]).load_state_dict(saved["state"])
 
 
 LR_SCHEDULES = ("plateau", "onecycle")
