@@ -121,8 +121,7 @@ def one_photo(a: argparse.Namespace) -> dict:
                 "weighting": "number", "maps": ["foreground", "boundary", "distance"], "readouts": {}}
         torch.manual_seed(0)
         net = net_from_meta(meta).eval()
-        dev = torch.device(a.device)
-        est = ReferenceMaps(meta, torch_runner(InstanceMaps(net).to(dev), dev), net)
+        est = ReferenceMaps(meta, torch_runner(InstanceMaps(net), a.device), net)
     timing = {"network_s": 0.0, "post_s": 0.0}
     outputs, read = est.outputs, est.read
 

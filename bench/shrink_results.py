@@ -43,14 +43,6 @@ def shrink_image(rgb: np.ndarray, size: int) -> np.ndarray:
     return to_input(rgb, size).permute(1, 2, 0).numpy()
 
 
-def shrink_mask(mask: np.ndarray, size: int) -> np.ndarray:
-    """Nearest-neighbour resize of an instance mask to size × size (pixel centres)."""
-    h, w = mask.shape
-    ys = np.minimum(((np.arange(size) + 0.5) * h / size).astype(np.int64), h - 1)
-    xs = np.minimum(((np.arange(size) + 0.5) * w / size).astype(np.int64), w - 1)
-    return mask[ys[:, None], xs[None, :]]
-
-
 def shrink_dataset(results: Path, dataset: str, out: Path, size: int, jpeg: int | None,
                    splits: tuple[str, ...] | None, particle_columns: tuple[str, ...] | None,
                    per_split: int | None = None) -> tuple[int, int]:
@@ -61,7 +53,8 @@ def shrink_dataset(results: Path, dataset: str, out: Path, size: int, jpeg: int 
     import pyarrow.parquet as pq
     from PIL import Image
 
-    from psdfactory.io import read_png, write_parquet, write_png
+    from psdfactory.io import atomic_path, read_png, write_parquet, write_png
+    from psdfactory.learn.instances.draw import resize_mask
     from psdfactory.manifest import read_scenes
 
     scenes = read_scenes(results, dataset)
@@ -84,13 +77,14 @@ def shrink_dataset(results: Path, dataset: str, out: Path, size: int, jpeg: int 
         dst.parent.mkdir(parents=True, exist_ok=True)
         small = shrink_image(rgb, size)
         if jpeg:
-            Image.fromarray(small).save(dst, quality=jpeg, subsampling=0)
+            with atomic_path(dst) as tmp:
+                Image.fromarray(small).save(tmp, format="JPEG", quality=jpeg, subsampling=0)
         else:
             write_png(dst, small, compress_level=9)
         written += dst.stat().st_size
         if particle_columns is not None:
             mask = read_png(results / r["mask_path"])
-            write_png(out / r["mask_path"], shrink_mask(mask, size).astype(np.uint16), compress_level=9)
+            write_png(out / r["mask_path"], resize_mask(mask, (size, size)).astype(np.uint16), compress_level=9)
             written += (out / r["mask_path"]).stat().st_size
         factor = rgb.shape[1] / size
         r.update(image_path=img_rel, resolution=size, mm_per_px=float(r["mm_per_px"]) * factor)
@@ -129,6 +123,8 @@ def main() -> None:
     ap.add_argument("--per-split", type=int, metavar="N", help="only the first N scenes of each split")
     ap.add_argument("--no-masks", action="store_true", help="copy neither masks nor particle manifests")
     a = ap.parse_args()
+    if a.size < 1:
+        ap.error("--size takes a side in px of at least 1")
     if a.per_split is not None and a.per_split < 1:
         ap.error("--per-split takes a count of at least 1")
     if a.jpeg is not None and not 1 <= a.jpeg <= 100:

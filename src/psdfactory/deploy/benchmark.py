@@ -253,7 +253,9 @@ def benchmark(model_path: Path, results_root: Path, dataset: str, batch: int, se
     est = load_estimator(model_path, "cpu")
     meta = est.meta
     picked = pick_device(device)
-    devices = [picked] if device != "auto" else [torch.device("cpu")] + [picked] * (picked.type == "cuda")
+    devices = [picked]
+    if device == "auto" and picked.type == "cuda":  # the workflow's benchmark: the CPU as well
+        devices = [torch.device("cpu"), picked]
     caps = capability.detect()
     logger.info(f"CPU: {caps.summary()}")
     result = {"arch": meta["arch"], "weights": meta["weights"], "cpu": caps.as_dict(), "results": []}
