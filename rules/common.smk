@@ -198,6 +198,11 @@ def train_params(wildcards):
     return as_json(psd_config.train_params(config, wildcards.arch))
 
 
+def train_manifests(wildcards):
+    """The scene manifests of the datasets this architecture trains on (train.datasets, or its own)."""
+    return shards_of(psd_config.train_params(config, wildcards.arch)["datasets"], "scenes")
+
+
 def evaluate_params(wildcards):
     return as_json(
         {

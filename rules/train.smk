@@ -1,6 +1,6 @@
 rule train:
     input:
-        manifests=shards_of(config["train"]["datasets"], "scenes"),
+        manifests=train_manifests,
     output:
         model=f"{RESULTS}/models/{{arch}}/model.pt",
         history=f"{RESULTS}/models/{{arch}}/history.csv",

@@ -280,6 +280,23 @@ def test_train_params_slice_has_the_instance_settings_only_for_instances():
     assert psd_config.train_params(cfg, "resnet50")["epochs"] == cfg["train"]["epochs"]
 
 
+def test_the_instance_estimator_can_train_on_more_datasets_than_the_cnns():
+    """train.instances.datasets: the grain finder's own training data (more scene families), the
+    CNNs' unchanged; null keeps train.datasets; the training rule's inputs follow it."""
+    cfg = tiny_config()
+    assert psd_config.train_params(cfg, "instances")["datasets"] == cfg["train"]["datasets"]
+    raw = {"seed": 1, "datasets": {"tiny": {"n_scenes": 4}, "beds": {"n_scenes": 4, "shape": "granule"}},
+           "train": {"datasets": ["tiny"], "architectures": ["resnet50", "instances"],
+                     "instances": {"datasets": ["tiny", "beds"]}}}
+    cfg = psd_config.validate(raw)
+    assert psd_config.train_params(cfg, "instances")["datasets"] == ["tiny", "beds"]
+    assert "datasets" not in psd_config.train_params(cfg, "instances")["settings"]
+    assert psd_config.train_params(cfg, "resnet50")["datasets"] == ["tiny"]
+    raw["train"]["instances"]["datasets"] = ["tiny", "nope"]
+    with pytest.raises(PsdError, match="train.instances.datasets: 'nope' is not one of the configured datasets"):
+        psd_config.validate(raw)
+
+
 # ---------------------------------------------------------------------------------------------
 # one tiny training run, then everything downstream of it
 

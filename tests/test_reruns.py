@@ -224,6 +224,23 @@ def test_a_rerender_of_the_training_splits_adds_only_its_scenes_and_feeds_traini
     assert "results/a_more/manifest/scenes/shard-00000.parquet" in r.stdout + r.stderr
 
 
+def test_the_instance_estimator_trains_on_its_own_datasets_and_the_cnns_on_theirs(built):
+    """train.instances.datasets [a, a_more]: the instance estimator's training job reads both
+    datasets' manifests, a CNN's only train.datasets' (a): more scene families for the grain finder
+    retrain no CNN."""
+    work, cfg = built
+    cfg = copy.deepcopy(cfg)
+    cfg["datasets"]["a_more"] = {"rerender_of": {"dataset": "a", "split": ["train", "val"]},
+                                 "render": {"resolution": 24}}
+    cfg["train"]["architectures"] = ["resnet50", "instances"]
+    cfg["train"].setdefault("instances", {})["datasets"] = ["a", "a_more"]
+    more = "results/a_more/manifest/scenes/shard-00000.parquet"
+    jobs, r = dry(work, cfg, target="results/models/instances/model.pt")
+    assert jobs["train"] == 1 and more in r.stdout + r.stderr
+    jobs, r = dry(work, cfg, target="results/models/resnet50/model.pt")
+    assert jobs["train"] == 1 and more not in r.stdout + r.stderr
+
+
 def test_a_measured_seed_spread_goes_into_the_report(built, tmp_path):
     """bench/seed_spread.py writes <results>/seed_spread/spread.json outside the DAG: once it exists the
     report takes it as an input (and is made again when it changes)."""

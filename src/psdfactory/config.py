@@ -439,25 +439,34 @@ def semantic_problems(config: dict) -> list[str]:
                             f"particles (Blender's object index tops out at {MAX_PARTICLES_CYCLES + 1})")
     t = config["train"]
     _ordered("train.scale_augment", t["scale_augment"], problems)
-    unknown = [d for d in t["datasets"] if d not in config["datasets"]]
-    for d in unknown:
-        problems.append(f"train.datasets: {d!r} is not one of the configured datasets "
-                        f"({', '.join(config['datasets'])})")
-    if len(set(t["datasets"])) != len(t["datasets"]):
-        problems.append("train.datasets: lists a dataset twice")
-    if not unknown:
-        have = set().union(*(dataset_splits(config, d) for d in t["datasets"]))
-        for s in ("train", "val"):
-            if s not in have:
-                problems.append(f"train.datasets: none of {', '.join(t['datasets'])} has '{s}' scenes; training "
-                                f"needs them (datasets.<name>.split, or a re-render's rerender_of.split)")
-        for d in t["datasets"]:
-            if not dataset_splits(config, d) & {"train", "val"}:
-                problems.append(f"train.datasets: {d!r} has no train or val scenes (only "
-                                f"{', '.join(sorted(dataset_splits(config, d)))}): it would add nothing to training")
+    problems += training_datasets_problems(config, "train.datasets", t["datasets"])
+    for arch in t["architectures"]:  # an estimator's own datasets (train.instances.datasets)
+        own = t[arch].get("datasets") if isinstance(t.get(arch), dict) else None
+        if own is not None:
+            problems += training_datasets_problems(config, f"train.{arch}.datasets", own)
     if len(set(t["architectures"])) != len(t["architectures"]):
         problems.append("train.architectures: lists an architecture twice")
     problems += photo_problems(config)
+    return problems
+
+
+def training_datasets_problems(config: dict, key: str, names: list[str]) -> list[str]:
+    """What is wrong with a list of datasets to train on (`key`: where the config gives it)."""
+    problems = [f"{key}: {d!r} is not one of the configured datasets ({', '.join(config['datasets'])})"
+                for d in names if d not in config["datasets"]]
+    if len(set(names)) != len(names):
+        problems.append(f"{key}: lists a dataset twice")
+    if problems:
+        return problems
+    have = set().union(*(dataset_splits(config, d) for d in names))
+    for s in ("train", "val"):
+        if s not in have:
+            problems.append(f"{key}: none of {', '.join(names)} has '{s}' scenes; training "
+                            f"needs them (datasets.<name>.split, or a re-render's rerender_of.split)")
+    for d in names:
+        if not dataset_splits(config, d) & {"train", "val"}:
+            problems.append(f"{key}: {d!r} has no train or val scenes (only "
+                            f"{', '.join(sorted(dataset_splits(config, d)))}): it would add nothing to training")
     return problems
 
 
@@ -617,5 +626,8 @@ def train_params(config: dict, arch: str) -> dict:
         epochs = out["settings"].pop("epochs", None)
         if epochs is not None:  # its own length (train.<arch>.epochs) overrides train.epochs
             out["epochs"] = int(epochs)
+        datasets = out["settings"].pop("datasets", None)
+        if datasets is not None:  # its own training data (train.<arch>.datasets) overrides train.datasets
+            out["datasets"] = list(datasets)
     return out
 
