@@ -4,6 +4,10 @@ what it reads (`train.instances.readout`: the footprints' statistics, or those a
 map's), what it is fitted on (the training split, or the training and validation splits) and
 the test-time views its maps are averaged over (`train.instances.tta`; `--tta`, default the
 model's), scored per target on the test split of each dataset beside its visible-particle ceiling.
+`--write-models DIR` also writes each read-out fitted as training fits it (on train+val) into a copy
+of the model, DIR/<tta>-<read-out>/model.pt, with the read-outs of the other size definitions refitted
+alike: a model `predict` and the benches take, e.g. to see a read-out on images of another look
+(bench/paper_look.py).
 
 The network and the post-processing stay as trained; only the views and the ridge read-out
 change, so the rows are comparable on one model (training fits `train+val`, with the config's
@@ -11,7 +15,7 @@ change, so the rows are comparable on one model (training fits `train+val`, with
 
     .venv/bin/python bench/instance_readout.py --config config/config.yaml \
         --model results/models/instances/model.pt --datasets train train_cycles --tta none d4 \
-        --out bench/out/readout.json
+        --out bench/out/readout.json [--write-models /tmp/readouts]
 """
 
 from __future__ import annotations
@@ -51,9 +55,10 @@ def main() -> None:
     from psdfactory.learn.evaluate import eval_rows
     from psdfactory.learn.instances.estimator import InstanceEstimator
     from psdfactory.learn.instances.stats import READOUTS
+    from psdfactory.learn.instances.training import other_readouts
     from psdfactory.learn.metrics import r2_scores
     from psdfactory.learn.readout import apply_readout, fit_readout
-    from psdfactory.learn.runtime import load_estimator
+    from psdfactory.learn.runtime import load_estimator, save_model
     from psdfactory.psd import NAMES, TARGETS
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -65,6 +70,8 @@ def main() -> None:
                     help="test-time views to score (default: the model's own)")
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--out", help="write the figures to this JSON file")
+    ap.add_argument("--write-models", metavar="DIR",
+                    help="write a copy of the model per read-out fitted on train+val: DIR/<tta>-<read-out>/model.pt")
     a = ap.parse_args()
     configure_logging()
     if a.threads:
@@ -103,6 +110,12 @@ def main() -> None:
                 r2 = {d: r2_scores(y, apply_readout(ro, x)).tolist() for d, (x, y) in scored.items()}
                 out["rows"].append({"tta": tta, "readout": readout, "fitted_on": fit, "n_scenes": ro["n_scenes"],
                                     "cv_r2": ro["cv_r2"], "r2": r2})
+                if a.write_models and fit == "train+val":  # as training fits it
+                    path = Path(a.write_models) / f"{tta}-{readout.replace('+', '-')}" / "model.pt"
+                    save_model(path, loaded.net, {
+                        **meta, "tta": tta, "readout_features": readout, "readout": ro,
+                        "readouts": other_readouts(fit_x[fit], train_rows + val_rows, features)})
+                    print(f"wrote {path}")
 
     def cell(r: list[float], c: list[float] | None) -> str:
         return " / ".join(f"{v:.3f}" + (f" ({100 * v / cv:.0f} %)" if c and cv > 0 else "")
