@@ -94,6 +94,7 @@ def one_photo(a: argparse.Namespace) -> dict:
     import torch
 
     from psdfactory.deploy import predict
+    from psdfactory.learn.instances.draw import resize_mask
     from psdfactory.learn.instances.estimator import InstanceEstimator
     from psdfactory.learn.instances.net import InstanceMaps, net_from_meta
     from psdfactory.learn.instances.watershed import DEFAULT_POSTPROCESS
@@ -105,10 +106,7 @@ def one_photo(a: argparse.Namespace) -> dict:
         """The network runs (and is timed) as it is; what is read is the reference's maps."""
 
         def read(self, outputs, mm_per_px):
-            h, w = outputs.shape[-2:]
-            r = np.minimum(((np.arange(h) + 0.5) * ref.shape[1] / h).astype(int), ref.shape[1] - 1)
-            c = np.minimum(((np.arange(w) + 0.5) * ref.shape[2] / w).astype(int), ref.shape[2] - 1)
-            maps = ref[:, r[:, None], c[None, :]].astype(np.float32)[None]
+            maps = resize_mask(ref, outputs.shape[-2:]).astype(np.float32)[None]
             return super().read(maps, mm_per_px)
 
     if a.model:

@@ -63,3 +63,15 @@ def test_set_changes_the_recipe_only_and_write_config_gives_a_config_without_sna
                         str(REPO / "config" / "paper-cpu.yaml"), "--set", "train.epochs=0", "--write-config",
                         str(tmp_path / "bad.json")], capture_output=True, text=True, cwd=REPO)
     assert r.returncode != 0 and "epochs" in r.stderr and not (tmp_path / "bad.json").exists()
+
+
+@pytest.mark.parametrize("seconds", ["7m", "0", "", "-5"])
+def test_gpu_seed_spread_refuses_a_time_limit_that_is_not_whole_seconds(tmp_path, seconds):
+    """bench/gpu_seed_spread.sh checks SECONDS itself (timeout would fail every run later, each with its own error)."""
+    import subprocess
+
+    script = str(REPO / "bench" / "gpu_seed_spread.sh")
+    r = subprocess.run(["bash", script, "cfg.json", "results", str(tmp_path / "out"), seconds, "resnet50", "1"],
+                       capture_output=True, text=True, timeout=30)
+    assert r.returncode == 2 and "SECONDS must be a whole number of seconds" in r.stderr
+    assert not (tmp_path / "out").exists()  # refused before anything ran

@@ -267,6 +267,8 @@ def test_resize_mask_keeps_ids():
     mask = discs((16, 16), [(5, 5), (10, 11)], 3)
     big = resize_mask(mask, (32, 48))
     assert big.shape == (32, 48) and set(np.unique(big)) == set(np.unique(mask))
+    maps = np.stack([mask, mask * 2]).astype(np.float32)  # a stack of maps: each resized alike
+    assert np.array_equal(resize_mask(maps, (32, 48)), np.stack([big, big * 2]))
 
 
 def test_train_params_slice_has_the_instance_settings_only_for_instances():

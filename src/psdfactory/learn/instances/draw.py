@@ -83,9 +83,11 @@ def draw_overlay(
 
 
 def resize_mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Nearest-neighbour resize of an instance mask (ids kept)."""
-    if mask.shape == tuple(shape):
+    """Nearest-neighbour resize of an instance mask (ids kept), or of a stack of maps (…×H×W: the
+    last two axes are resized)."""
+    h, w = mask.shape[-2:]
+    if (h, w) == tuple(shape):
         return mask
-    r = np.minimum((np.arange(shape[0]) + 0.5) * mask.shape[0] / shape[0], mask.shape[0] - 1).astype(int)
-    c = np.minimum((np.arange(shape[1]) + 0.5) * mask.shape[1] / shape[1], mask.shape[1] - 1).astype(int)
-    return mask[r[:, None], c[None, :]]
+    r = np.minimum((np.arange(shape[0]) + 0.5) * h / shape[0], h - 1).astype(int)
+    c = np.minimum((np.arange(shape[1]) + 0.5) * w / shape[1], w - 1).astype(int)
+    return mask[..., r[:, None], c[None, :]]
