@@ -109,38 +109,37 @@ def test_precision_auto_picks_fp32_where_it_is_faster():
 
 
 def test_fp16_training_scales_the_loss_and_skips_a_step_whose_gradients_overflow():
-    """fp16 gradients underflow without loss scaling: optimise_step keeps a GradScaler with the
-    optimiser; a step whose gradients are not finite is skipped and the scale lowered."""
+    """fp16 gradients underflow without loss scaling: a training in fp16 steps with its own
+    GradScaler (runtime.loss_scaler; none in bf16 or fp32); a step whose gradients are not finite
+    is skipped and the scale lowered; an fp16 step without the scaler is refused."""
     import torch
 
-    from psdfactory.learn.runtime import grad_scaler, optimise_step, restore_scaler, scaler_state
+    from psdfactory.learn.runtime import loss_scaler, optimise_step
 
     torch.manual_seed(0)
     model = torch.nn.Linear(4, 1)
     opt = torch.optim.SGD(model.parameters(), lr=0.1)
     x, dev = torch.randn(8, 4), torch.device("cpu")
+    assert loss_scaler(dev, "bf16") is None and loss_scaler(dev, "fp32") is None
+    scaler = loss_scaler(dev, "fp16")
 
     def square(out):
         return out.float().pow(2).mean()
 
     before = model.weight.detach().clone()
-    losses = [optimise_step(model, opt, x, square, dev, "fp16", "train.lr") for _ in range(30)]
-    scaler = grad_scaler(opt, dev)
+    losses = [optimise_step(model, opt, x, square, dev, "fp16", "train.lr", scaler) for _ in range(30)]
     assert not torch.equal(model.weight, before) and losses[-1] < losses[0]  # it learns
     scale, kept = scaler.get_scale(), model.weight.detach().clone()
     hook = model.weight.register_hook(lambda g: g * float("inf"))  # a finite loss, an infinite gradient
-    optimise_step(model, opt, x, square, dev, "fp16", "train.lr")
+    optimise_step(model, opt, x, square, dev, "fp16", "train.lr", scaler)
     hook.remove()
     assert torch.equal(model.weight, kept) and scaler.get_scale() < scale  # skipped, scale lowered
     optimise_step(model, opt, x, square, dev, "fp32", "train.lr")
-    assert not torch.equal(model.weight, kept)  # fp32 steps as before, without the scaler
-    saved = scaler_state(opt)  # the resumable checkpoint keeps it (plain numbers: weights_only loads it)
-    again = torch.optim.SGD(model.parameters(), lr=0.1)
-    assert scaler_state(again) is None
-    restore_scaler(again, saved)
-    assert grad_scaler(again, dev).get_scale() == scaler.get_scale()
+    assert not torch.equal(model.weight, kept)  # fp32 steps as before, without a scaler
+    with pytest.raises(ValueError, match="loss scaler"):
+        optimise_step(model, opt, x, square, dev, "fp16", "train.lr")
     hook = model.weight.register_hook(lambda g: g * float("inf"))  # overflowing for good: a clear error
     with pytest.raises(PsdError, match="fp16 training stalled"):
         for _ in range(40):
-            optimise_step(model, again, x, square, dev, "fp16", "train.lr")
+            optimise_step(model, opt, x, square, dev, "fp16", "train.lr", scaler)
     hook.remove()

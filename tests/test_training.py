@@ -62,6 +62,18 @@ def trained(dataset, tmp_path_factory):
     return out, summary
 
 
+def test_fp16_training_runs_with_its_loss_scaler_and_keeps_it_in_the_resumable_checkpoint(dataset, tmp_path):
+    """train.precision fp16 (a GPU without bf16; here on the CPU, which autocasts fp16 too): the
+    training steps with its loss scaler, learns, and last.pt holds the scaler's state for a resume."""
+    from psdfactory.learn.runtime import load_checkpoint
+    from psdfactory.learn.train import train
+
+    summary = train(params(precision="fp16", epochs=2), dataset, tmp_path)
+    assert summary["precision"] == "fp16" and (tmp_path / "model.pt").is_file()
+    ck = load_checkpoint(tmp_path / "checkpoints" / "last.pt", "training checkpoint")
+    assert ck["grad_scaler"]["scale"] > 0  # GradScaler.state_dict(), plain numbers
+
+
 @pytest.mark.slow
 def test_training_lowers_loss_and_writes_outputs(trained):
     import csv
@@ -578,10 +590,10 @@ def test_a_model_psdfactory_writes_loads_with_weights_only(tmp_path):
 
 def test_the_resume_checkpoint_is_plain_data_that_loads_with_weights_only(tmp_path):
     """last.pt as the fit loop writes it (Adam, ReduceLROnPlateau, generator states, history,
-    extra modules) loads with weights_only=True, and restores the optimizer, scheduler and random
-    streams exactly."""
+    extra modules, fp16's loss scaler) loads with weights_only=True, and restores the optimizer,
+    scheduler, loss scale and random streams exactly."""
     from psdfactory.learn.fit import FitTask, _resume, _state
-    from psdfactory.learn.runtime import LrSchedule, load_checkpoint
+    from psdfactory.learn.runtime import LrSchedule, load_checkpoint, loss_scaler
 
     model, head = torch.nn.Linear(3, 3), torch.nn.Linear(3, 2)
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
@@ -590,8 +602,11 @@ def test_the_resume_checkpoint_is_plain_data_that_loads_with_weights_only(tmp_pa
     opt.step()
     sched.after_epoch(0.5)
     gen, loader_gen = torch.Generator().manual_seed(1), torch.Generator().manual_seed(2)
+    scaler = loss_scaler("cpu", "fp16")  # an fp16 training's loss scaler, its scale lowered
+    scaler.scale(torch.tensor(1.0))
+    scaler.update(new_scale=1024.0)
     task = FitTask(model, opt, sched, lambda bar: 0.0, lambda: {"val_loss": 0.0}, 4, modules={"head": head},
-                   generators={"gen": gen, "loader_gen": loader_gen})
+                   generators={"gen": gen, "loader_gen": loader_gen}, scaler=scaler)
     history = [{"epoch": 1, "train_loss": 0.5, "val_loss": 0.4, "val_mae_mm": 0.3, "lr": 1e-3, "seconds": 1.0}]
     torch.save(_state(task, "abc", 0, history, np.float64(0.4), 1, 0), tmp_path / "last.pt")
     ck = load_checkpoint(tmp_path / "last.pt", "training checkpoint")
@@ -602,13 +617,14 @@ def test_the_resume_checkpoint_is_plain_data_that_loads_with_weights_only(tmp_pa
     sched2 = LrSchedule(opt2, "plateau", 5, 1, 0.5, 1)
     g2, lg2 = torch.Generator(), torch.Generator()
     task2 = FitTask(model2, opt2, sched2, lambda bar: 0.0, lambda: {"val_loss": 0.0}, 4, modules={"head": head2},
-                    generators={"gen": g2, "loader_gen": lg2})
+                    generators={"gen": g2, "loader_gen": lg2}, scaler=loss_scaler("cpu", "fp16"))
     assert _resume(task2, tmp_path / "last.pt", "other", "m")[0] == 0  # another fingerprint: a fresh start
     start, hist, best, best_epoch, stale = _resume(task2, tmp_path / "last.pt", "abc", "m")
     assert (start, hist, best, best_epoch, stale) == (1, history, 0.4, 1, 0)
     assert sched2.sched.best == 0.5
     assert torch.equal(head2.weight, head.weight) and torch.equal(model2.weight, model.weight)
     assert torch.equal(torch.rand(5, generator=g2), expected)
+    assert task2.scaler.get_scale() == 1024.0  # fp16's loss scale goes on where it was
 
 
 def test_optimise_step_steps_and_names_the_lr_key_when_the_loss_diverges():

@@ -28,6 +28,7 @@ from .runtime import (
     LrSchedule,
     is_target_stats,
     loss_fn,
+    loss_scaler,
     optimise_step,
     pick_device,
     predict_batches,
@@ -66,9 +67,10 @@ class SizeCells:
 
 
 def run_epoch(model, loader, stats, opt, sched, device, precision, aux_weight, gen, params,
-              bar=None, cells: SizeCells | None = None) -> float:
+              bar=None, cells: SizeCells | None = None, scaler=None) -> float:
     """One pass over the training images; with `cells` the loader's images carry size codes as a
-    fourth channel (augmented with the image) and the size-histogram loss is added."""
+    fourth channel (augmented with the image) and the size-histogram loss is added; `scaler`:
+    fp16's loss scaler (`runtime.loss_scaler`)."""
     model.train()
     total, n = 0.0, 0
     for x, y in loader:
@@ -87,7 +89,7 @@ def run_epoch(model, loader, stats, opt, sched, device, precision, aux_weight, g
             loss = loss_fn(out, y, stats, aux_weight)
             return loss if cells is None else loss + cells.loss(codes)
 
-        loss = optimise_step(model, opt, x, loss_of, device, precision, "train.lr")
+        loss = optimise_step(model, opt, x, loss_of, device, precision, "train.lr", scaler)
         sched.after_step()
         total += loss * len(x)
         n += len(x)
@@ -156,11 +158,12 @@ class CnnRegressor(Estimator):
             return {"val_loss": float(nn.functional.mse_loss(stats.standardise(pred), stats.standardise(y))),
                     "val_mae_mm": float((pred - y).abs().mean())}
 
+        scaler = loss_scaler(device, precision)
         task = FitTask(model, opt, sched, lambda bar: run_epoch(model, train_loader, stats, opt, sched, device,
                                                                  precision, params.aux_loss_weight, gen, params, bar,
-                                                                 cells),
+                                                                 cells, scaler),
                        validate, len(train_ds), "img", modules={"cell_head": cells.head} if cells else {},
-                       generators={"gen": gen, "loader_gen": loader_gen})
+                       generators={"gen": gen, "loader_gen": loader_gen}, scaler=scaler)
         n_params = count_parameters(model)
         logger.info(f"training {params.arch} ({n_params / 1e6:.1f} M parameters, weights: {weights_used}) on "
                     f"{len(train_ds)} train / {len(val_ds)} val scenes of {', '.join(params.datasets)}, input {size} "

@@ -23,7 +23,7 @@ from torch import nn
 
 from .. import PsdError
 from ..io import atomic_path
-from .runtime import LrSchedule, load_checkpoint, restore_scaler, save_model, scaler_state, write_torch
+from .runtime import LrSchedule, load_checkpoint, save_model, write_torch
 
 logger = logging.getLogger(__name__)
 HISTORY_COLUMNS = ("epoch", "train_loss", "val_loss", "val_mae_mm", "lr", "seconds")
@@ -51,7 +51,8 @@ class FitTask:
     `train_epoch(bar)` runs one epoch (updating the tqdm `bar` by `unit`s) and returns its mean
     training loss; `validate()` returns {"val_loss": ..., optionally "val_mae_mm": ...}. `model`
     is the network saved as the best checkpoint; `modules` (the model among them) and
-    `generators` are saved in the resumable checkpoint with the optimiser and the schedule.
+    `generators` are saved in the resumable checkpoint with the optimiser, the schedule and the
+    fp16 loss `scaler` (`runtime.loss_scaler`; None in bf16 and fp32) that `train_epoch` steps with.
     """
 
     model: nn.Module
@@ -63,6 +64,7 @@ class FitTask:
     unit: str = "img"
     modules: dict[str, nn.Module] = field(default_factory=dict)
     generators: dict[str, torch.Generator] = field(default_factory=dict)
+    scaler: torch.amp.GradScaler | None = None
 
 
 @dataclass
@@ -83,7 +85,7 @@ def _state(task: FitTask, fp: str, epoch: int, history: list[dict], best: float,
         "best": float(best), "best_epoch": int(best_epoch), "stale": int(stale),
         "modules": {k: m.state_dict() for k, m in {"model": task.model, **task.modules}.items()},
         "generators": {k: g.get_state() for k, g in task.generators.items()},
-        "grad_scaler": scaler_state(task.optimizer),
+        "grad_scaler": task.scaler.state_dict() if task.scaler is not None else None,
     }
 
 
@@ -99,7 +101,8 @@ def _resume(task: FitTask, path: Path, fp: str, name: str) -> tuple[int, list[di
     for k, m in {"model": task.model, **task.modules}.items():
         m.load_state_dict(ck["modules"][k])
     task.optimizer.load_state_dict(ck["optimizer"])
-    restore_scaler(task.optimizer, ck.get("grad_scaler"))
+    if task.scaler is not None and ck.get("grad_scaler"):
+        task.scaler.load_state_dict(ck["grad_scaler"])
     task.schedule.load_state_dict(ck["scheduler"])
     for k, g in task.generators.items():
         g.set_state(ck["generators"][k])

@@ -81,19 +81,21 @@ def autocast(device: torch.device, precision: str):
 
 
 def optimise_step(model: nn.Module, opt: torch.optim.Optimizer, x: torch.Tensor, loss_of, device: torch.device,
-                  precision: str, lr_key: str) -> float:
+                  precision: str, lr_key: str, scaler: torch.amp.GradScaler | None = None) -> float:
     """One optimiser step on the batch `x` (normalised, on `device`): forward under `precision`'s
     autocast, `loss_of(output)`, a clear error naming `lr_key` on a non-finite loss, backward,
-    step. In fp16 the loss is scaled (`grad_scaler`): fp16 gradients underflow without it, where
-    bf16 has fp32's range. Returns the batch's loss."""
+    step. In fp16 the loss is scaled by `scaler` (`loss_scaler`: the training's own, kept in its
+    resumable checkpoint): fp16 gradients underflow without it, where bf16 has fp32's range.
+    Returns the batch's loss."""
+    if precision == "fp16" and scaler is None:
+        raise ValueError("an fp16 step needs the training's loss scaler (runtime.loss_scaler)")
     with autocast(device, precision):
         out = model(x)
     loss = loss_of(out)
     if not torch.isfinite(loss):
         raise PsdError(f"training diverged (non-finite loss); lower {lr_key}")
     opt.zero_grad(set_to_none=True)
-    if precision == "fp16":
-        scaler = grad_scaler(opt, device)
+    if scaler is not None:
         scaler.scale(loss).backward()
         scaler.step(opt)  # skipped, and the scale lowered, where a gradient overflowed
         scaler.update()
@@ -109,25 +111,9 @@ def optimise_step(model: nn.Module, opt: torch.optim.Optimizer, x: torch.Tensor,
 MIN_LOSS_SCALE = 2.0 ** -10  # fp16's loss scale starts at 2^16 and halves at each overflowing step
 
 
-def grad_scaler(opt: torch.optim.Optimizer, device: torch.device | str) -> torch.amp.GradScaler:
-    """The loss scaler of fp16 training with `opt`, made at its first step and kept with it (in
-    the resumable checkpoint too: `scaler_state`, `restore_scaler`)."""
-    held = opt.__dict__.get("psd_grad_scaler")
-    if held is None:
-        kind = torch.device(device).type
-        held = opt.__dict__["psd_grad_scaler"] = (kind, torch.amp.GradScaler(kind))
-    return held[1]
-
-
-def scaler_state(opt: torch.optim.Optimizer) -> dict | None:
-    """{device, state} of `opt`'s loss scaler (plain numbers), None where it has none."""
-    held = opt.__dict__.get("psd_grad_scaler")
-    return None if held is None else {"device": held[0], "state": held[1].state_dict()}
-
-
-def restore_scaler(opt: torch.optim.Optimizer, saved: dict | None) -> None:
-    if saved:
-        grad_scaler(opt, saved["device"]).load_state_dict(saved["state"])
+def loss_scaler(device: torch.device | str, precision: str) -> torch.amp.GradScaler | None:
+    """The loss scaler a training in `precision` steps with (`optimise_step`): fp16's, None otherwise."""
+    return torch.amp.GradScaler(torch.device(device).type) if precision == "fp16" else None
 
 
 LR_SCHEDULES = ("plateau", "onecycle")

@@ -28,7 +28,16 @@ from ..fit import FitTask, fingerprint, fit, write_history
 from ..metrics import regression_metrics
 from ..models import count_parameters
 from ..readout import apply_readout, fit_readout
-from ..runtime import LrSchedule, autocast, optimise_step, pick_device, save_model, torch_runner, training_precision
+from ..runtime import (
+    LrSchedule,
+    autocast,
+    loss_scaler,
+    optimise_step,
+    pick_device,
+    save_model,
+    torch_runner,
+    training_precision,
+)
 from . import ARCH
 from .measure import SIEVE_METHODS
 from .net import DECODER, FULL_RES, TRUNK, InstanceMaps, build_instance_net
@@ -158,6 +167,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     steps_per_epoch = math.ceil(len(x_train) * settings.crops_per_image / params.batch_size)
     sched = LrSchedule(opt, params.lr_schedule, params.epochs, steps_per_epoch, params.lr_factor, params.lr_patience)
     gen = torch.Generator().manual_seed(params.seed)
+    scaler = loss_scaler(device, precision)
 
     def train_epoch(bar) -> float:
         model.train()
@@ -170,7 +180,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
                 x = photometric(x, gen, settings.photometric)
             x, t = normalise(x.to(device)), t.to(device)
             loss = optimise_step(model, opt, x, lambda out, t=t: instance_loss(out, t, pw)[0], device, precision,
-                                 "train.instances.lr")
+                                 "train.instances.lr", scaler)
             sched.after_step()
             total += loss * len(x)
             n += len(x)
@@ -180,7 +190,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
 
     task = FitTask(model, opt, sched, train_epoch,
                    lambda: {"val_loss": val_loss(model, x_val, t_val, device, precision, pw)},
-                   len(x_train) * settings.crops_per_image, "crop", generators={"gen": gen})
+                   len(x_train) * settings.crops_per_image, "crop", generators={"gen": gen}, scaler=scaler)
     ids = [(r["scene_id"], r["split"], *(r[t] for t in TARGETS)) for r in rows]
     fp = fingerprint({**asdict(params), "settings": asdict(settings)}, ids)
     res = fit(task, ARCH, params.epochs, params.early_stopping_patience, out_dir, fp,
