@@ -625,6 +625,12 @@ def test_the_resume_checkpoint_is_plain_data_that_loads_with_weights_only(tmp_pa
     assert torch.equal(head2.weight, head.weight) and torch.equal(model2.weight, model.weight)
     assert torch.equal(torch.rand(5, generator=g2), expected)
     assert task2.scaler.get_scale() == 1024.0  # fp16's loss scale goes on where it was
+    ck = torch.load(tmp_path / "last.pt", weights_only=True)  # a checkpoint of before, {device, state}, resumes too
+    ck["grad_scaler"] = {"device": "cpu", "state": ck["grad_scaler"]}
+    torch.save(ck, tmp_path / "old.pt")
+    task2.scaler = loss_scaler("cpu", "fp16")
+    _resume(task2, tmp_path / "old.pt", "abc", "m")
+    assert task2.scaler.get_scale() == 1024.0
 
 
 def test_optimise_step_steps_and_names_the_lr_key_when_the_loss_diverges():

@@ -101,8 +101,9 @@ def _resume(task: FitTask, path: Path, fp: str, name: str) -> tuple[int, list[di
     for k, m in {"model": task.model, **task.modules}.items():
         m.load_state_dict(ck["modules"][k])
     task.optimizer.load_state_dict(ck["optimizer"])
-    if task.scaler is not None and ck.get("grad_scaler"):
-        task.scaler.load_state_dict(ck["grad_scaler"])
+    saved = ck.get("grad_scaler")
+    if task.scaler is not None and saved:
+        task.scaler.load_state_dict(saved.get("state", saved))  # checkpoints of before 2026-11-26 held {device, state}
     task.schedule.load_state_dict(ck["scheduler"])
     for k, g in task.generators.items():
         g.set_state(ck["generators"][k])
