@@ -24,8 +24,9 @@ config=$1 results=$2 out=$3 seconds=$4 archs=$5
 shift 5
 [ -n "${archs// /}" ] || usage
 case $seconds in
-    ''|*[!0-9]*|0) echo "SECONDS must be a whole number of seconds above 0, got '$seconds'" >&2; usage ;;
+    ''|*[!0-9]*) echo "SECONDS must be a whole number of seconds above 0, got '$seconds'" >&2; usage ;;
 esac
+[ $((10#$seconds)) -gt 0 ] || { echo "SECONDS must be a whole number of seconds above 0, got '$seconds'" >&2; usage; }
 here=$(cd "$(dirname "$0")/.." && pwd)
 export PYTHONPATH="$here/src${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 py=${PYTHON:-python3}

@@ -52,7 +52,7 @@ def paper_look_config(base: Path, seed: int) -> dict:
     cfg["seed"] = seed
     cfg["render"] = {**cfg["render"], **PAPER_LOOK}
     cfg["datasets"] = {DATASET: cfg["datasets"]["train"]}
-    cfg["train"] = {**cfg["train"], "datasets": [DATASET]}
+    cfg["train"] = {**cfg["train"], "datasets": [DATASET], "instances": {**cfg["train"]["instances"], "datasets": None}}
     return validate(cfg)
 
 

@@ -65,7 +65,7 @@ def test_set_changes_the_recipe_only_and_write_config_gives_a_config_without_sna
     assert r.returncode != 0 and "epochs" in r.stderr and not (tmp_path / "bad.json").exists()
 
 
-@pytest.mark.parametrize("seconds", ["7m", "0", "", "-5"])
+@pytest.mark.parametrize("seconds", ["7m", "0", "00", "", "-5"])
 def test_gpu_seed_spread_refuses_a_time_limit_that_is_not_whole_seconds(tmp_path, seconds):
     """bench/gpu_seed_spread.sh checks SECONDS itself (timeout would fail every run later, each with its own error)."""
     import subprocess

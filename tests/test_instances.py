@@ -294,7 +294,10 @@ def test_the_instance_estimator_can_train_on_more_datasets_than_the_cnns():
     assert psd_config.train_params(cfg, "instances")["datasets"] == ["tiny", "beds"]
     assert "datasets" not in psd_config.train_params(cfg, "instances")["settings"]
     assert psd_config.train_params(cfg, "resnet50")["datasets"] == ["tiny"]
-    raw["train"]["instances"]["datasets"] = ["tiny", "nope"]
+    assert psd_config.trained_datasets(cfg) == ["tiny", "beds"]  # what the report counts as trained on
+    raw["train"]["architectures"] = ["resnet50"]
+    assert psd_config.trained_datasets(psd_config.validate(raw)) == ["tiny"]
+    raw["train"]["instances"]["datasets"] = ["tiny", "nope"]  # checked whether it is trained now or not
     with pytest.raises(PsdError, match="train.instances.datasets: 'nope' is not one of the configured datasets"):
         psd_config.validate(raw)
 

@@ -64,7 +64,7 @@ def trained(dataset, tmp_path_factory):
 
 def test_fp16_training_runs_with_its_loss_scaler_and_keeps_it_in_the_resumable_checkpoint(dataset, tmp_path):
     """train.precision fp16 (a GPU without bf16; here on the CPU, which autocasts fp16 too): the
-    training steps with its loss scaler, learns, and last.pt holds the scaler's state for a resume."""
+    training steps with its loss scaler to a model, and last.pt holds the scaler's state for a resume."""
     from psdfactory.learn.runtime import load_checkpoint
     from psdfactory.learn.train import train
 

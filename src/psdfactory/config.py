@@ -440,14 +440,27 @@ def semantic_problems(config: dict) -> list[str]:
     t = config["train"]
     _ordered("train.scale_augment", t["scale_augment"], problems)
     problems += training_datasets_problems(config, "train.datasets", t["datasets"])
-    for arch in t["architectures"]:  # an estimator's own datasets (train.instances.datasets)
-        own = t[arch].get("datasets") if isinstance(t.get(arch), dict) else None
-        if own is not None:
-            problems += training_datasets_problems(config, f"train.{arch}.datasets", own)
+    for arch, own in estimator_datasets(config).items():  # train.instances.datasets, listed architecture or not
+        problems += training_datasets_problems(config, f"train.{arch}.datasets", own)
     if len(set(t["architectures"])) != len(t["architectures"]):
         problems.append("train.architectures: lists an architecture twice")
     problems += photo_problems(config)
     return problems
+
+
+def estimator_datasets(config: dict) -> dict[str, list[str]]:
+    """The estimators' own training datasets where their section gives them (train.<arch>.datasets)."""
+    t = config["train"]
+    return {k: list(v["datasets"]) for k, v in t.items() if isinstance(v, dict) and v.get("datasets") is not None}
+
+
+def trained_datasets(config: dict) -> list[str]:
+    """Every dataset a model of train.architectures trains on: train.datasets, then the estimators'
+    own (train.instances.datasets), in order, once each."""
+    out = list(config["train"]["datasets"])
+    for arch in config["train"]["architectures"]:
+        out += [d for d in train_params(config, arch)["datasets"] if d not in out]
+    return out
 
 
 def training_datasets_problems(config: dict, key: str, names: list[str]) -> list[str]:

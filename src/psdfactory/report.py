@@ -12,7 +12,14 @@ from pathlib import Path
 import numpy as np
 
 from . import PsdError, __version__
-from .config import dataset_render, evaluation_datasets, main_training_dataset, rerender_splits, train_params
+from .config import (
+    dataset_render,
+    evaluation_datasets,
+    main_training_dataset,
+    rerender_splits,
+    train_params,
+    trained_datasets,
+)
 from .io import atomic_path, copy_file, pyplot, read_json, save_figure
 from .manifest import read_shards
 from .paper import TABLE2, TABLE2_TEST, TABLE3, TABLE3_CPU, TABLE3_GPU
@@ -231,7 +238,7 @@ def evaluated_datasets(config: dict, metrics: dict[str, dict]) -> list[str]:
     """Every dataset any model was evaluated on, the training datasets first, then the others of
     the training renderers, then other renderers, then datasets from outside the config (the
     config reaches the report as JSON with sorted keys: its order says nothing)."""
-    train = list(config["train"].get("datasets") or [])
+    train = trained_datasets(config)
     seen = [ds for m in metrics.values() for ds in m["datasets"]]
     trained_with = {renderer_of(config, d) for d in train if d in config["datasets"]}
 
@@ -364,7 +371,7 @@ def summarize(config: dict, metrics: dict[str, dict], bench: dict[str, dict], ta
     device = common[-1] if common else None
 
     # the yardstick: the images least like the training ones
-    train = [d for d in (config["train"].get("datasets") or []) if d in config["datasets"]]
+    train = [d for d in trained_datasets(config) if d in config["datasets"]]  # by any model
     trained_with = {renderer_of(config, d) for d in train}
     external = [c for c in columns if c.renderer == EXTERNAL]
     unseen = [c for c in columns if c.renderer not in trained_with and c.renderer != EXTERNAL]

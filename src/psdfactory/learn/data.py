@@ -32,7 +32,8 @@ def training_rows(results_root: Path, datasets: tuple[str, ...] | list[str]
     train = [r for r in rows if r["split"] == "train"]
     val = [r for r in rows if r["split"] == "val"]
     if not train or not val:
-        raise PsdError(f"train.datasets {', '.join(datasets)}: {len(train)} train and {len(val)} val scenes; "
+        raise PsdError(f"training datasets {', '.join(datasets)} (train.datasets, or train.<arch>.datasets): "
+                       f"{len(train)} train and {len(val)} val scenes; "
                        "training needs both (datasets.<name>.split and n_scenes)")
     return train, val, rows
 
