@@ -112,11 +112,9 @@ def main() -> None:
                                     "cv_r2": ro["cv_r2"], "r2": r2})
                 if a.write_models and fit == "train+val":  # as training fits it
                     path = Path(a.write_models) / f"{tta}-{readout.replace('+', '-')}" / "model.pt"
-                    params = {**meta["params"], "settings": {**meta["params"]["settings"], "readout": readout,
-                                                             "tta": tta}}
                     kept = {k: v for k, v in meta.items() if k not in ("val", "calibration")}  # the old read-out's
                     save_model(path, loaded.net, {
-                        **kept, "params": params, "tta": tta, "readout_features": readout, "readout": ro,
+                        **kept, "tta": tta, "readout_features": readout, "readout": ro,
                         "readouts": other_readouts(fit_x[fit], train_rows + val_rows, features)})
                     print(f"wrote {path}")
 
