@@ -24,16 +24,17 @@ config=$1 results=$2 out=$3 seconds=$4 archs=$5
 shift 5
 [ -n "${archs// /}" ] || usage
 case $seconds in
-    ''|*[!0-9]*) echo "SECONDS must be a whole number of seconds above 0, got '$seconds'" >&2; usage ;;
+    ''|*[!0-9]*) whole=0 ;;
+    *) whole=$((10#$seconds)) ;;
 esac
-[ $((10#$seconds)) -gt 0 ] || { echo "SECONDS must be a whole number of seconds above 0, got '$seconds'" >&2; usage; }
+[ "$whole" -gt 0 ] || { echo "SECONDS must be a whole number of seconds above 0, got '$seconds'" >&2; usage; }
 here=$(cd "$(dirname "$0")/.." && pwd)
 export PYTHONPATH="$here/src${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 py=${PYTHON:-python3}
 n=$(( $(echo "$archs" | wc -w) * $# ))
 threads=$(( ($(nproc) - 1) / n ))
 [ "$threads" -ge 1 ] || threads=1
-mkdir -p "$out"
+mkdir -p "$out" || exit 2
 echo "$(date -u +%FT%TZ) $n runs side by side, $threads CPU threads each, ${seconds} s at most"
 for arch in $archs; do
     for seed in "$@"; do

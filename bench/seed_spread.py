@@ -393,7 +393,7 @@ def main() -> None:
           flush=True)
     if not a.no_snakemake and not a.summarise_only:
         make_datasets(config_path, a.jobs, out / "snakemake.log")
-    trained_on = {d for arch in archs for d in psd_config.train_params(cfg, arch)["datasets"]}
+    trained_on = psd_config.trained_datasets(cfg, archs)
     missing = [d for d in {*datasets, *trained_on} if not (results / d / "manifest" / "scenes").is_dir()]
     if missing:
         sys.exit(f"no manifests for {', '.join(sorted(missing))} under {results}: run without --no-snakemake")

@@ -132,6 +132,7 @@ def test_a_rerender_of_the_training_splits_trains_beside_its_source_and_is_never
     (["tiny", "tiny"], "train.datasets: lists a dataset twice"),
     (["again"], "train.datasets: none of again has 'train' scenes"),
     (["tiny", "again"], "train.datasets: 'again' has no train or val scenes (only test)"),
+    (["again", "again"], "train.datasets: none of again, again has 'train' scenes"),  # a duplicate, checked on
 ])
 def test_bad_training_dataset_lists_name_the_problem(datasets, expect):
     with pytest.raises(PsdError, match=expect.replace("(", r"\(").replace(")", r"\)")):

@@ -454,11 +454,11 @@ def estimator_datasets(config: dict) -> dict[str, list[str]]:
     return {k: list(v["datasets"]) for k, v in t.items() if isinstance(v, dict) and v.get("datasets") is not None}
 
 
-def trained_datasets(config: dict) -> list[str]:
-    """Every dataset a model of train.architectures trains on: train.datasets, then the estimators'
-    own (train.instances.datasets), in order, once each."""
+def trained_datasets(config: dict, archs: list[str] | None = None) -> list[str]:
+    """Every dataset the models of `archs` (default: train.architectures) train on: train.datasets,
+    then the estimators' own (train.instances.datasets), in order, once each."""
     out = list(config["train"]["datasets"])
-    for arch in config["train"]["architectures"]:
+    for arch in config["train"]["architectures"] if archs is None else archs:
         out += [d for d in train_params(config, arch)["datasets"] if d not in out]
     return out
 
@@ -467,9 +467,10 @@ def training_datasets_problems(config: dict, key: str, names: list[str]) -> list
     """What is wrong with a list of datasets to train on (`key`: where the config gives it)."""
     problems = [f"{key}: {d!r} is not one of the configured datasets ({', '.join(config['datasets'])})"
                 for d in names if d not in config["datasets"]]
+    unknown = bool(problems)
     if len(set(names)) != len(names):
         problems.append(f"{key}: lists a dataset twice")
-    if problems:
+    if unknown:
         return problems
     have = set().union(*(dataset_splits(config, d) for d in names))
     for s in ("train", "val"):
