@@ -82,6 +82,16 @@ def main() -> None:
     meta = loaded.meta
     if not isinstance(loaded, InstanceEstimator):
         raise SystemExit(f"{a.model} is a {meta.get('arch')} model, not the instance estimator")
+    ttas = a.tta or [meta.get("tta", "none")]
+
+    def written(tta: str, readout: str) -> Path:  # --write-models' file of one refitted read-out
+        return Path(a.write_models) / f"{tta}-{readout.replace('+', '-')}" / "model.pt"
+
+    if a.write_models:  # refused before any work: it must not overwrite the model read or the --out file
+        taken = {Path(a.model).resolve(), *([Path(a.out).resolve()] if a.out else [])}
+        clash = [w for t in ttas for r in READOUTS if (w := written(t, r)).resolve() in taken]
+        if clash:
+            raise SystemExit(f"--write-models {a.write_models} would overwrite {clash[0]}: give another folder")
     datasets = a.datasets or psd_config.evaluation_datasets(cfg)
     train_rows, val_rows, _ = training_rows(root, meta["params"]["datasets"])
     fit_y = {"train": targets(train_rows).numpy()}
@@ -93,7 +103,7 @@ def main() -> None:
 
     out = {"model": str(a.model), "trained_with": {k: meta.get(k) for k in ("readout_features", "tta")},
            "ceilings": ceilings, "rows": []}
-    for tta in a.tta or [meta.get("tta", "none")]:
+    for tta in ttas:
         est = InstanceEstimator({**meta, "tta": tta}, loaded.run, loaded.net)
         t0 = time.perf_counter()
         fit_x = {"train": stats_of(est, train_rows, root)}
@@ -111,7 +121,7 @@ def main() -> None:
                 out["rows"].append({"tta": tta, "readout": readout, "fitted_on": fit, "n_scenes": ro["n_scenes"],
                                     "cv_r2": ro["cv_r2"], "r2": r2})
                 if a.write_models and fit == "train+val":  # as training fits it
-                    path = Path(a.write_models) / f"{tta}-{readout.replace('+', '-')}" / "model.pt"
+                    path = written(tta, readout)
                     kept = {k: v for k, v in meta.items() if k not in ("val", "calibration")}  # the old read-out's
                     save_model(path, loaded.net, {
                         **kept, "tta": tta, "readout_features": readout, "readout": ro,

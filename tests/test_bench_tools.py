@@ -75,3 +75,26 @@ def test_gpu_seed_spread_refuses_a_time_limit_that_is_not_whole_seconds(tmp_path
                        capture_output=True, text=True, timeout=30)
     assert r.returncode == 2 and "SECONDS must be a whole number of seconds" in r.stderr
     assert not (tmp_path / "out").exists()  # refused before anything ran
+
+
+def test_instance_readout_refuses_to_write_a_refitted_model_over_the_model_it_reads(tmp_path):
+    """bench/instance_readout.py --write-models DIR: a copy whose path is the --model file (or the --out
+    file) is refused before any work, the model left as it was."""
+    import subprocess
+    import sys
+
+    from psdfactory.learn.instances.net import net_from_meta
+    from psdfactory.learn.instances.watershed import DEFAULT_POSTPROCESS
+    from psdfactory.learn.runtime import save_model
+
+    meta = {"arch": "instances", "mm_per_px": 0.5, "image_resolution": 64, "input_size": 64,
+            "postprocess": dict(DEFAULT_POSTPROCESS), "sieve_method": "min_feret", "size_definition": "sieve",
+            "weighting": "number", "maps": ["foreground", "boundary", "distance"], "readouts": {}}
+    model = tmp_path / "none-footprints" / "model.pt"
+    model.parent.mkdir()
+    save_model(model, net_from_meta(meta), meta)
+    before = model.read_bytes()
+    r = subprocess.run([sys.executable, str(REPO / "bench" / "instance_readout.py"), "--model", str(model),
+                        "--write-models", str(tmp_path)], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert r.returncode != 0 and f"would overwrite {model}" in r.stderr
+    assert model.read_bytes() == before
