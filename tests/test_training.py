@@ -740,3 +740,56 @@ def test_size_cells_train_a_plain_regressor_and_resume(dataset, tmp_path, monkey
     train_mod.CnnRegressor.train(params(size_cells=1.0, epochs=1, input_size=64, precision="bf16"), dataset,
                                  tmp_path / "bf16")
     assert (tmp_path / "bf16" / "model.pt").is_file()
+
+
+def test_crop_trains_on_windows_with_the_size_cells_and_reads_whole_images(dataset, tmp_path, monkeypatch):
+    """train.crop: each training step sees random windows of the images (and of their size codes,
+    the dense task's fourth channel) at the same scale; the model reads whole images; the windows
+    are the seed's (two runs give the same losses) and differ from the whole-image run."""
+    import csv
+
+    from psdfactory.learn import cnn as cnn_mod
+    from psdfactory.learn.runtime import load_model
+
+    seen = []
+    real = cnn_mod.random_crop
+
+    def spy(x, size, gen):
+        out = real(x, size, gen)
+        seen.append((tuple(x.shape), tuple(out.shape)))
+        return out
+
+    monkeypatch.setattr(cnn_mod, "random_crop", spy)
+    p = params(size_cells=1.0, epochs=2, input_size=64, crop=40)
+    losses = []
+    for name in ("a", "b"):
+        summary = cnn_mod.CnnRegressor.train(p, dataset, tmp_path / name)
+        losses.append([float(r["train_loss"]) for r in csv.DictReader(open(tmp_path / name / "history.csv"))])
+    assert summary["params"]["crop"] == 40
+    assert seen and all(s[1][0] == s[0][0] and s[0][1] == 4 and s[1][1:] == (4, 40, 40) for s in seen)
+    assert losses[0] == losses[1]
+    model, meta = load_model(tmp_path / "a" / "model.pt")
+    assert meta["input_size"] == 64 and model(torch.zeros(1, 3, 64, 64)).shape == (1, 3)
+    cnn_mod.CnnRegressor.train(params(size_cells=1.0, epochs=2, input_size=64), dataset, tmp_path / "whole")
+    whole = [float(r["train_loss"]) for r in csv.DictReader(open(tmp_path / "whole" / "history.csv"))]
+    assert whole != losses[0]
+
+
+def test_crop_size_is_off_at_or_above_the_input_and_refuses_what_the_network_cannot_take():
+    from psdfactory.learn.models import crop_size
+
+    assert crop_size("resnet50", 0, 256) == 0
+    assert crop_size("resnet50", 256, 256) == 0 and crop_size("resnet50", 300, 256) == 0
+    assert crop_size("resnet50", 128, 256) == 128
+    with pytest.raises(PsdError, match=r"train.crop = 64 is below the 75 px that inception_v3 accepts"):
+        crop_size("inception_v3", 64, 256)
+    assert crop_size("inception_v3", 96, 256) == 96
+
+
+def test_a_crop_below_32_px_is_a_config_error():
+    cfg = tiny_config()
+    cfg["train"]["crop"] = 16
+    with pytest.raises(PsdError, match="invalid config: .*crop"):
+        psd_config.validate(cfg)
+    cfg["train"]["crop"] = 0
+    assert psd_config.validate(cfg)["train"]["crop"] == 0

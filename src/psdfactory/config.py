@@ -631,7 +631,7 @@ def train_params(config: dict, arch: str) -> dict:
     t = config["train"]
     keys = ("datasets", "pretrained", "epochs", "batch_size", "lr", "weight_decay", "lr_factor", "lr_patience",
             "lr_schedule", "early_stopping_patience", "precision", "device", "aux_loss_weight", "augment",
-            "scale_augment", "photometric", "size_cells")
+            "scale_augment", "crop", "photometric", "size_cells")
     out = {k: t[k] for k in keys}
     size = t["input_size"].get(arch, default_input_size(arch))
     out.update(arch=arch, seed=config["seed"], input_size=int(size))

@@ -4,7 +4,7 @@ head of `learn.models`) whose output is d10/d50/d90 in mm.
 Training follows the paper's recipe by default: MSE on standardised targets, Adam,
 ReduceLROnPlateau on the validation loss (or a one-cycle schedule, `train.lr_schedule`), random
 90° rotations and flips, early stopping, the best checkpoint kept (`learn.fit`); beside it the
-scale and photometric augmentations and the dense size task (`train.size_cells`).
+scale, crop and photometric augmentations and the dense size task (`train.size_cells`).
 """
 
 from __future__ import annotations
@@ -19,11 +19,19 @@ from torch import nn
 
 from .. import __version__
 from ..psd import TARGETS
-from .augment import augment_d4, photometric, rescale
+from .augment import augment_d4, photometric, random_crop, rescale
 from .data import SceneImages, label_definition, normalise, particles_by_scene, training_rows
 from .estimator import Estimator, Reading
 from .fit import FitTask, fingerprint, fit, write_history
-from .models import TargetStats, build_model, count_parameters, inception_aux_fits, input_size, main_output
+from .models import (
+    TargetStats,
+    build_model,
+    count_parameters,
+    crop_size,
+    inception_aux_fits,
+    input_size,
+    main_output,
+)
 from .runtime import (
     LrSchedule,
     is_target_stats,
@@ -67,10 +75,11 @@ class SizeCells:
 
 
 def run_epoch(model, loader, stats, opt, sched, device, precision, aux_weight, gen, params,
-              bar=None, cells: SizeCells | None = None, scaler=None) -> float:
+              bar=None, cells: SizeCells | None = None, scaler=None, crop: int = 0) -> float:
     """One pass over the training images; with `cells` the loader's images carry size codes as a
     fourth channel (augmented with the image) and the size-histogram loss is added; `scaler`:
-    fp16's loss scaler (`runtime.loss_scaler`)."""
+    fp16's loss scaler (`runtime.loss_scaler`); `crop` > 0: a random window of that many px of
+    each image is trained on (`models.crop_size`)."""
     model.train()
     total, n = 0.0, 0
     for x, y in loader:
@@ -78,6 +87,8 @@ def run_epoch(model, loader, stats, opt, sched, device, precision, aux_weight, g
             x = augment_d4(x, gen)
         if tuple(params.scale_augment) != (1.0, 1.0):
             x, y = rescale(x, y, tuple(params.scale_augment), gen)
+        if crop:
+            x = random_crop(x, crop, gen)
         codes = x[:, 3] if cells is not None else None
         x = x[:, :3]
         if params.photometric > 0:
@@ -124,6 +135,7 @@ class CnnRegressor(Estimator):
         np.random.seed(params.seed % 2**32)
         device = pick_device(params.device)
         size = input_size(params.arch, {params.arch: params.input_size})
+        crop = crop_size(params.arch, params.crop, size)
 
         train_rows, val_rows, rows = training_rows(results_root, params.datasets)
         train_ds = SceneImages(results_root, train_rows, size)
@@ -134,7 +146,7 @@ class CnnRegressor(Estimator):
             logger.info(f"inception_v3 at {size} px: auxiliary head dropped (it needs ≥ 299 px)")
         model = model.to(device).to(memory_format=torch.channels_last)
         batch = min(params.batch_size, len(train_ds))
-        precision = training_precision(params.precision, device, model, size, batch,
+        precision = training_precision(params.precision, device, model, crop or size, batch,
                                        lambda out: loss_fn(out, torch.zeros(batch, 3), stats, params.aux_loss_weight))
         cells, fed = None, train_ds
         if params.size_cells > 0:  # the dense size-histogram task: a head on the last feature map, training only
@@ -161,13 +173,14 @@ class CnnRegressor(Estimator):
         scaler = loss_scaler(device, precision)
         task = FitTask(model, opt, sched, lambda bar: run_epoch(model, train_loader, stats, opt, sched, device,
                                                                  precision, params.aux_loss_weight, gen, params, bar,
-                                                                 cells, scaler),
+                                                                 cells, scaler, crop),
                        validate, len(train_ds), "img", modules={"cell_head": cells.head} if cells else {},
                        generators={"gen": gen, "loader_gen": loader_gen}, scaler=scaler)
         n_params = count_parameters(model)
         logger.info(f"training {params.arch} ({n_params / 1e6:.1f} M parameters, weights: {weights_used}) on "
                     f"{len(train_ds)} train / {len(val_ds)} val scenes of {', '.join(params.datasets)}, input {size} "
-                    f"px, {device} {precision}, up to {params.epochs} epochs")
+                    f"px{f' (trained on random {crop}-px windows)' if crop else ''}, {device} {precision}, up to "
+                    f"{params.epochs} epochs")
         meta = {
             "arch": params.arch,
             "input_size": size,

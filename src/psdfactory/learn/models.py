@@ -87,6 +87,16 @@ def input_size(arch: str, configured: dict | None = None) -> int:
     return size
 
 
+def crop_size(arch: str, crop: int, size: int) -> int:
+    """The training window (`train.crop`) of `arch` at input `size`: 0 = the whole image."""
+    if crop <= 0 or crop >= size:
+        return 0
+    if crop < MIN_INPUT.get(arch, 32):
+        raise PsdError(f"train.crop = {crop} is below the {MIN_INPUT.get(arch, 32)} px that {arch} accepts; "
+                       f"set train.crop to 0 (off) or at least {MIN_INPUT.get(arch, 32)}")
+    return crop
+
+
 def _weights_enum(arch: str):
     import torchvision
 

@@ -34,6 +34,7 @@ class TrainParams:
     augment: bool
     scale_augment: tuple[float, float]
     photometric: float
+    crop: int  # train on random windows of this many px of each input image (labels kept); 0 = off
     size_cells: float  # weight of the dense size-histogram loss (learn.size_cells); 0 = off
     seed: int  # the config's seed
 
