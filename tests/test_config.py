@@ -146,3 +146,20 @@ def test_a_reversed_range_of_the_markings_or_distractors_is_refused_by_name(sect
     cfg["render"][section] = {"probability": 0.5, key: [0.9, 0.3]}
     with pytest.raises(PsdError, match=rf"render\.{section}\.{key}: \[0\.9, 0\.3\] must have lo <= hi"):
         psd_config.validate(cfg)
+
+
+def test_a_dataset_of_training_scenes_only_is_never_evaluated():
+    """More training scenes without a test split (in train.datasets, or only the instance
+    estimator's) are not scored: evaluated whole, they would be read on the scenes the models
+    learnt. A dataset without a test split that nothing trains on is evaluated whole."""
+    cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    more = dict(cfg["datasets"]["train"], n_scenes=20, split={"train": 0.85, "val": 0.15})
+    cfg["datasets"].update(more=more, spare=dict(more))
+    cfg["train"]["datasets"] = ["train", "more"]
+    cfg = psd_config.validate(cfg)
+    evaluated = psd_config.evaluation_datasets(cfg)
+    assert "more" not in evaluated and "spare" in evaluated
+    assert {"train", "ood_test", "train_cycles"} <= set(evaluated)
+    cfg["train"]["datasets"] = ["train"]
+    cfg["train"]["instances"]["datasets"] = ["train", "spare"]
+    assert "spare" not in psd_config.evaluation_datasets(cfg) and "more" in psd_config.evaluation_datasets(cfg)

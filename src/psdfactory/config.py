@@ -610,10 +610,13 @@ def shard_batches(config: dict, dataset: str, shard: int) -> range:
 
 
 def evaluation_datasets(config: dict) -> list[str]:
-    """The datasets every model is evaluated on: all but re-renders of training splits only (more
-    training images for train.datasets, never a test)."""
-    return [d for d in config["datasets"] if "rerender_of" not in config["datasets"][d]
-            or "test" in dataset_splits(config, d)]
+    """The datasets every model is evaluated on: those with a test split, and those without one
+    that no model trains on (evaluated whole). Never a dataset of training scenes only: a
+    re-render of training splits, or more training scenes (e.g. `split: {train: 0.85, val: 0.15}`
+    in train.datasets), which would be scored on the scenes the models learnt."""
+    trained = set(trained_datasets(config))
+    return [d for d, ds in config["datasets"].items() if "test" in dataset_splits(config, d)
+            or ("rerender_of" not in ds and d not in trained)]
 
 
 def photo_params(config: dict, name: str) -> dict:
