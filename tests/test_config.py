@@ -163,3 +163,11 @@ def test_a_dataset_of_training_scenes_only_is_never_evaluated():
     cfg["train"]["datasets"] = ["train"]
     cfg["train"]["instances"]["datasets"] = ["train", "spare"]
     assert "spare" not in psd_config.evaluation_datasets(cfg) and "more" in psd_config.evaluation_datasets(cfg)
+
+
+def test_a_config_with_nothing_to_evaluate_on_is_refused():
+    cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    cfg["datasets"] = {"train": dict(cfg["datasets"]["train"], split={"train": 0.85, "val": 0.15})}
+    cfg["photos"] = {}
+    with pytest.raises(PsdError, match="datasets: none to evaluate the models on"):
+        psd_config.validate(cfg)

@@ -760,16 +760,24 @@ def test_crop_trains_on_windows_with_the_size_cells_and_reads_whole_images(datas
         return out
 
     monkeypatch.setattr(cnn_mod, "random_crop", spy)
+    validated = []
+    real_predict = cnn_mod.predict_batches
+
+    def predict_spy(model, loader, *a, **k):
+        validated.append(tuple(next(iter(loader))[0].shape[-2:]))
+        return real_predict(model, loader, *a, **k)
+
+    monkeypatch.setattr(cnn_mod, "predict_batches", predict_spy)
     p = params(size_cells=1.0, epochs=2, input_size=64, crop=40)
     losses = []
     for name in ("a", "b"):
-        summary = cnn_mod.CnnRegressor.train(p, dataset, tmp_path / name)
+        cnn_mod.CnnRegressor.train(p, dataset, tmp_path / name)
         losses.append([float(r["train_loss"]) for r in csv.DictReader(open(tmp_path / name / "history.csv"))])
-    assert summary["params"]["crop"] == 40
     assert seen and all(s[1][0] == s[0][0] and s[0][1] == 4 and s[1][1:] == (4, 40, 40) for s in seen)
+    assert validated and set(validated) == {(64, 64)}  # validation reads whole images
     assert losses[0] == losses[1]
     model, meta = load_model(tmp_path / "a" / "model.pt")
-    assert meta["input_size"] == 64 and model(torch.zeros(1, 3, 64, 64)).shape == (1, 3)
+    assert meta["params"]["crop"] == 40
     cnn_mod.CnnRegressor.train(params(size_cells=1.0, epochs=2, input_size=64), dataset, tmp_path / "whole")
     whole = [float(r["train_loss"]) for r in csv.DictReader(open(tmp_path / "whole" / "history.csv"))]
     assert whole != losses[0]
@@ -784,6 +792,23 @@ def test_crop_size_is_off_at_or_above_the_input_and_refuses_what_the_network_can
     with pytest.raises(PsdError, match=r"train.crop = 64 is below the 75 px that inception_v3 accepts"):
         crop_size("inception_v3", 64, 256)
     assert crop_size("inception_v3", 96, 256) == 96
+    # at 299 px InceptionV3 trains its auxiliary head, which a smaller window cannot feed
+    with pytest.raises(PsdError, match=r"train.crop = 200: inception_v3 at 299 px trains its auxiliary head"):
+        crop_size("inception_v3", 200, 299)
+    assert crop_size("inception_v3", 299, 320) == 299 and crop_size("resnet50", 200, 299) == 200
+
+
+def test_the_training_slice_holds_crop_only_when_it_is_on():
+    """A slice without train.crop (every slice written before it, and with it off) is the same as
+    before, so no trained model's params change; TrainParams reads its absence as off."""
+    from psdfactory.learn.train import TrainParams
+
+    cfg = psd_config.validate(tiny_config())
+    off = psd_config.train_params(cfg, "resnet18")
+    assert "crop" not in off and TrainParams.from_dict(off).crop == 0
+    cfg["train"]["crop"] = 64
+    assert psd_config.train_params(cfg, "resnet18")["crop"] == 64
+    assert TrainParams.from_dict(psd_config.train_params(cfg, "resnet18")).crop == 64
 
 
 def test_a_crop_below_32_px_is_a_config_error():

@@ -444,6 +444,9 @@ def semantic_problems(config: dict) -> list[str]:
         problems += training_datasets_problems(config, f"train.{arch}.datasets", own)
     if len(set(t["architectures"])) != len(t["architectures"]):
         problems.append("train.architectures: lists an architecture twice")
+    if not problems and not evaluation_datasets(config):
+        problems.append("datasets: none to evaluate the models on: give one a test split (e.g. split: {train: 0.7, "
+                        "val: 0.15, test: 0.15}) or add one that no model trains on")
     problems += photo_problems(config)
     return problems
 
@@ -634,8 +637,10 @@ def train_params(config: dict, arch: str) -> dict:
     t = config["train"]
     keys = ("datasets", "pretrained", "epochs", "batch_size", "lr", "weight_decay", "lr_factor", "lr_patience",
             "lr_schedule", "early_stopping_patience", "precision", "device", "aux_loss_weight", "augment",
-            "scale_augment", "crop", "photometric", "size_cells")
+            "scale_augment", "photometric", "size_cells")
     out = {k: t[k] for k in keys}
+    if t.get("crop"):  # in the slice only when on: the slices of before it (and with it off) stay as they
+        out["crop"] = int(t["crop"])  # were, so no trained model's params change and nothing retrains
     size = t["input_size"].get(arch, default_input_size(arch))
     out.update(arch=arch, seed=config["seed"], input_size=int(size))
     if isinstance(t.get(arch), dict):  # an estimator's own settings, train.<arch>: only its slice has

@@ -948,7 +948,7 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
     cfg_yaml = yaml.safe_dump(config, sort_keys=False)
     when = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     ceilings = {ds: read_json(f) for ds, f in inputs.ceilings.items()}
-    tested = evaluation_datasets(config)  # not the re-renders that are training images only
+    tested = evaluation_datasets(config)  # not the datasets of training scenes only
     tested += [c.dataset for c in summ.columns if c.dataset not in tested]  # and any other evaluated one
     where = {c.dataset: f"{c.renderer}, {c.split}" for c in summ.columns}
     acc = {ds: accuracy_table(metrics, ds, ceilings.get(ds), rerenders_of(config, ds)) for ds in tested}

@@ -79,11 +79,15 @@ def _softplus_inv(y: float) -> float:
     return y + math.log(-math.expm1(-y))
 
 
+def min_input(arch: str) -> int:
+    """The smallest input (px) `arch` accepts."""
+    return MIN_INPUT.get(arch, 32)
+
+
 def input_size(arch: str, configured: dict | None = None) -> int:
     size = int((configured or {}).get(arch, default_input_size(arch)))
-    if size < MIN_INPUT.get(arch, 32):
-        raise PsdError(f"train.input_size.{arch} = {size} is below the {MIN_INPUT.get(arch, 32)} px "
-                       f"that {arch} accepts")
+    if size < min_input(arch):
+        raise PsdError(f"train.input_size.{arch} = {size} is below the {min_input(arch)} px that {arch} accepts")
     return size
 
 
@@ -91,9 +95,13 @@ def crop_size(arch: str, crop: int, size: int) -> int:
     """The training window (`train.crop`) of `arch` at input `size`: 0 = the whole image."""
     if crop <= 0 or crop >= size:
         return 0
-    if crop < MIN_INPUT.get(arch, 32):
-        raise PsdError(f"train.crop = {crop} is below the {MIN_INPUT.get(arch, 32)} px that {arch} accepts; "
-                       f"set train.crop to 0 (off) or at least {MIN_INPUT.get(arch, 32)}")
+    if crop < min_input(arch):
+        raise PsdError(f"train.crop = {crop} is below the {min_input(arch)} px that {arch} accepts; "
+                       f"set train.crop to 0 (off) or at least {min_input(arch)}")
+    if arch == "inception_v3" and inception_aux_fits(size) and not inception_aux_fits(crop):
+        raise PsdError(f"train.crop = {crop}: inception_v3 at {size} px trains its auxiliary head, which needs "
+                       f"windows of at least 299 px; set train.crop to 0 (off), at least 299, or "
+                       f"train.input_size.inception_v3 below 299 (the head is then dropped)")
     return crop
 
 

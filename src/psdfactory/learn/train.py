@@ -40,7 +40,8 @@ class TrainParams:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainParams:
-        return cls(**config_fields(cls, d, "train"))
+        # train.crop is in a slice only when on (config.train_params): absent means off
+        return cls(**config_fields(cls, {"crop": 0, **d}, "train"))
 
 
 def train_from_params(params: dict, results_root: Path, out_dir: Path) -> dict:
