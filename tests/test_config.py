@@ -1,3 +1,5 @@
+import copy
+
 import pytest
 import yaml
 
@@ -171,3 +173,18 @@ def test_a_config_with_nothing_to_evaluate_on_is_refused():
     cfg["photos"] = {}
     with pytest.raises(PsdError, match="datasets: none to evaluate the models on"):
         psd_config.validate(cfg)
+
+
+@pytest.mark.parametrize("train, expect", [
+    ({"input_size": {"inception_v3": 64}}, "train.input_size.inception_v3 = 64 is below the 75 px"),
+    ({"crop": 64}, "train.crop = 64 is below the 75 px that inception_v3 accepts"),
+    ({"crop": 200, "input_size": {"inception_v3": 299}}, "train.crop = 200: inception_v3 at 299 px trains its"),
+])
+def test_an_input_or_window_a_network_cannot_take_is_refused_when_the_config_is_read(train, expect):
+    """Not hours later, when the training job starts after the scenes."""
+    cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    cfg["train"].update(train)
+    with pytest.raises(PsdError, match=expect):
+        psd_config.validate(copy.deepcopy(cfg))
+    cfg["train"]["architectures"] = ["resnet50", "instances"]  # without InceptionV3 each is fine
+    psd_config.validate(cfg)

@@ -25,6 +25,7 @@ MAX_MESH_FACES = 5000  # triangles of a user's particle mesh (every particle of 
 DESIGN_INPUT_SIZE = 224  # network input px of the torchvision models
 # where the design size differs; for the instance estimator: its training crops (it runs on whole images)
 DEFAULT_INPUT_SIZE = {"inception_v3": 299, "instances": 128}
+MIN_INPUT_SIZE = {"inception_v3": 75}  # the smallest input (px) an architecture accepts where not 32
 # psdfactory predict --tile: the side (px at the network's scale) of the tiles an image too large for one pass is
 # run in by an estimator whose outputs are maps (~1.2 GB for the instance network on a CPU)
 PREDICT_TILE_PX = 1024
@@ -37,6 +38,41 @@ PREDICT_RUNTIMES = ("auto", "torch", "onnx")  # what runs a model.pt's network i
 def default_input_size(arch: str) -> int:
     """The network input px of an architecture where train.input_size does not set it."""
     return DEFAULT_INPUT_SIZE.get(arch, DESIGN_INPUT_SIZE)
+
+
+def min_input(arch: str) -> int:
+    """The smallest input (px) `arch` accepts."""
+    return MIN_INPUT_SIZE.get(arch, 32)
+
+
+def inception_aux_fits(size: int) -> bool:
+    """InceptionV3's auxiliary head needs a 17×17 Mixed_6e map, i.e. an input of at least 299 px."""
+    x = (size - 3) // 2 + 1 - 2  # Conv2d_1a (s2), Conv2d_2a
+    x = (x - 3) // 2 + 1 - 2  # maxpool, Conv2d_4a
+    x = (x - 3) // 2 + 1  # maxpool
+    x = (x - 3) // 2 + 1  # Mixed_6a (s2)
+    return (x - 5) // 3 + 1 >= 5
+
+
+def input_size_problem(arch: str, size: int) -> str | None:
+    """What is wrong with `size` px as `arch`'s input (train.input_size), or None."""
+    if size < min_input(arch):
+        return f"train.input_size.{arch} = {size} is below the {min_input(arch)} px that {arch} accepts"
+    return None
+
+
+def crop_problem(arch: str, crop: int, size: int) -> str | None:
+    """What is wrong with `crop` px windows (train.crop) for a CNN regressor `arch` at input `size`, or None."""
+    if crop <= 0 or crop >= size:
+        return None  # off, or the whole image
+    if crop < min_input(arch):
+        return (f"train.crop = {crop} is below the {min_input(arch)} px that {arch} accepts; set train.crop to 0 "
+                f"(off) or at least {min_input(arch)}")
+    if arch == "inception_v3" and inception_aux_fits(size) and not inception_aux_fits(crop):
+        return (f"train.crop = {crop}: inception_v3 at {size} px trains its auxiliary head, which needs windows "
+                f"of at least 299 px; set train.crop to 0 (off), at least 299, or train.input_size.inception_v3 "
+                f"below 299 (the head is then dropped)")
+    return None
 
 
 def config_fields(cls, params: dict, key: str) -> dict:
@@ -444,6 +480,11 @@ def semantic_problems(config: dict) -> list[str]:
         problems += training_datasets_problems(config, f"train.{arch}.datasets", own)
     if len(set(t["architectures"])) != len(t["architectures"]):
         problems.append("train.architectures: lists an architecture twice")
+    for arch in t["architectures"]:  # caught now, not when a training job starts after the scenes
+        size = int(t["input_size"].get(arch, default_input_size(arch)))
+        problem = input_size_problem(arch, size) or crop_problem(arch, t["crop"], size)
+        if problem:
+            problems.append(problem)
     if not problems and not evaluation_datasets(config):
         problems.append("datasets: none to evaluate the models on: give one a test split (e.g. split: {train: 0.7, "
                         "val: 0.15, test: 0.15}) or add one that no model trains on")

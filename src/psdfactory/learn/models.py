@@ -16,10 +16,9 @@ import torch
 from torch import nn
 
 from .. import PsdError
-from ..config import default_input_size
+from ..config import crop_problem, default_input_size, inception_aux_fits, input_size_problem
 
 logger = logging.getLogger(__name__)
-MIN_INPUT = {"inception_v3": 75}
 
 
 @dataclass
@@ -79,30 +78,20 @@ def _softplus_inv(y: float) -> float:
     return y + math.log(-math.expm1(-y))
 
 
-def min_input(arch: str) -> int:
-    """The smallest input (px) `arch` accepts."""
-    return MIN_INPUT.get(arch, 32)
-
-
 def input_size(arch: str, configured: dict | None = None) -> int:
     size = int((configured or {}).get(arch, default_input_size(arch)))
-    if size < min_input(arch):
-        raise PsdError(f"train.input_size.{arch} = {size} is below the {min_input(arch)} px that {arch} accepts")
+    problem = input_size_problem(arch, size)
+    if problem:
+        raise PsdError(problem)
     return size
 
 
 def crop_size(arch: str, crop: int, size: int) -> int:
     """The training window (`train.crop`) of `arch` at input `size`: 0 = the whole image."""
-    if crop <= 0 or crop >= size:
-        return 0
-    if crop < min_input(arch):
-        raise PsdError(f"train.crop = {crop} is below the {min_input(arch)} px that {arch} accepts; "
-                       f"set train.crop to 0 (off) or at least {min_input(arch)}")
-    if arch == "inception_v3" and inception_aux_fits(size) and not inception_aux_fits(crop):
-        raise PsdError(f"train.crop = {crop}: inception_v3 at {size} px trains its auxiliary head, which needs "
-                       f"windows of at least 299 px; set train.crop to 0 (off), at least 299, or "
-                       f"train.input_size.inception_v3 below 299 (the head is then dropped)")
-    return crop
+    problem = crop_problem(arch, crop, size)
+    if problem:
+        raise PsdError(problem)
+    return crop if 0 < crop < size else 0
 
 
 def _weights_enum(arch: str):
@@ -127,15 +116,6 @@ def load_imagenet_weights(arch: str) -> dict:
             f"{w.url.rsplit('/', 1)[-1]} in the torch hub cache (torch.hub.get_dir()/checkpoints) "
             "or set train.pretrained: none"
         ) from None
-
-
-def inception_aux_fits(size: int) -> bool:
-    """InceptionV3's auxiliary head needs a 17×17 Mixed_6e map, i.e. an input of at least 299 px."""
-    x = (size - 3) // 2 + 1 - 2  # Conv2d_1a (s2), Conv2d_2a
-    x = (x - 3) // 2 + 1 - 2  # maxpool, Conv2d_4a
-    x = (x - 3) // 2 + 1  # maxpool
-    x = (x - 3) // 2 + 1  # Mixed_6a (s2)
-    return (x - 5) // 3 + 1 >= 5
 
 
 def build_model(arch: str, stats: TargetStats, pretrained: str = "none",
