@@ -480,9 +480,9 @@ def semantic_problems(config: dict) -> list[str]:
         problems += training_datasets_problems(config, f"train.{arch}.datasets", own)
     if len(set(t["architectures"])) != len(t["architectures"]):
         problems.append("train.architectures: lists an architecture twice")
-    for arch in t["architectures"]:  # caught now, not when a training job starts after the scenes
-        size = int(t["input_size"].get(arch, default_input_size(arch)))
-        problem = input_size_problem(arch, size) or crop_problem(arch, t["crop"], size)
+    for arch in t["architectures"]:  # what each training job will be given, checked now, not after the scenes
+        p = train_params(config, arch)
+        problem = input_size_problem(arch, p["input_size"]) or crop_problem(arch, p.get("crop", 0), p["input_size"])
         if problem:
             problems.append(problem)
     if not problems and not evaluation_datasets(config):
