@@ -98,3 +98,36 @@ def test_instance_readout_refuses_to_write_a_refitted_model_over_the_model_it_re
                         "--write-models", str(tmp_path)], capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode != 0 and f"would overwrite {model}" in r.stderr
     assert model.read_bytes() == before
+
+
+def test_photo_maps_shows_the_photo_and_each_map_of_an_instance_model(tmp_path):
+    """bench/photo_maps.py: the photo at the network's scale and its four maps, each tile the map's
+    values as grey levels, named."""
+    from PIL import Image
+
+    from psdfactory.learn.instances.net import net_from_meta
+    from psdfactory.learn.instances.watershed import DEFAULT_POSTPROCESS
+    from psdfactory.learn.runtime import save_model
+
+    photo_maps = bench_module("photo_maps")
+    maps = np.stack([np.full((50, 60), v, np.float32) for v in (0.0, 0.25, 0.5, 1.0)])
+    image = np.full((50, 60, 3), 7, np.uint8)
+    out = photo_maps.panel(image, maps, window=40)
+    assert out.shape == (2 * 40, 3 * 40, 3)  # 5 tiles of 40 x 40 px on a 3-wide grid
+    tile = {k: out[40 * (k // 3) + 30, 40 * (k % 3) + 30] for k in range(5)}  # a pixel below each label
+    assert [int(tile[k][0]) for k in range(5)] == [7, 0, 63, 127, 255]  # photo, then the maps 0, 0.25, 0.5, 1
+    assert (out[60:, 80:] == 255).all()  # the sixth place stays blank
+    label = out[1:15, 1:40].reshape(-1, 3)
+    assert (label == 0).all(axis=1).any() and (label[:, 0] > 200).any()  # the tile's name, in yellow on black
+
+    meta = {"arch": "instances", "mm_per_px": 0.5, "image_resolution": 64, "input_size": 64,
+            "postprocess": dict(DEFAULT_POSTPROCESS), "sieve_method": "min_feret", "size_definition": "sieve",
+            "weighting": "number", "maps": ["foreground", "boundary", "distance", "size"], "readouts": {}}
+    model = tmp_path / "model.pt"
+    save_model(model, net_from_meta(meta), meta)
+    rng = np.random.default_rng(0)
+    Image.fromarray(rng.integers(0, 255, (48, 80, 3), dtype=np.uint8)).save(tmp_path / "bed.png")
+    assert photo_maps.main(["--model", str(model), "--mm-per-px", "1.0", str(tmp_path / "bed.png"),
+                            "--out", str(tmp_path / "maps")]) == 0
+    shown = np.asarray(Image.open(tmp_path / "maps" / "bed.png"))
+    assert shown.shape == (2 * 96, 3 * 160, 3)  # read at the model's 0.5 mm/px: twice the size, 96 x 160 px
