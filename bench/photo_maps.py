@@ -60,13 +60,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--window", type=int, default=600, help="px of the maps shown per side (default 600)")
     ap.add_argument("--out", default="photo_maps", help="folder for <photo stem>.png (default photo_maps/)")
     a = ap.parse_args(argv)
+    if a.window < 32:
+        ap.error(f"--window must be at least 32 px, got {a.window}")
 
     from PIL import Image
 
+    from psdfactory import PsdError
     from psdfactory.deploy.predict import load_predictor, read_at_scale, target_size
     from psdfactory.io import read_photo, write_png
 
-    est = load_predictor(Path(a.model))
+    try:
+        est = load_predictor(Path(a.model))
+    except PsdError as e:
+        ap.error(str(e))
     if not est.finds_grains:
         ap.error(f"{a.model} is not a model that finds grains (arch {est.meta.get('arch')!r}): it has no maps")
     est.auto_scale = a.auto_scale
@@ -79,16 +85,22 @@ def main(argv: list[str] | None = None) -> int:
 
     est.read = keep_maps
     out = Path(a.out)
+    failed = 0
     for p in map(Path, a.photos):
-        image, size_hw = read_photo(p, need=lambda h, w: target_size(h, w, est.meta, a.mm_per_px))
-        _, hw = read_at_scale(est, image, size_hw, a.mm_per_px, where=str(p))
+        try:
+            image, size_hw = read_photo(p, need=lambda h, w: target_size(h, w, est.meta, a.mm_per_px))
+            _, hw = read_at_scale(est, image, size_hw, a.mm_per_px, where=str(p))
+        except PsdError as e:
+            print(f"{p}: {e}", file=sys.stderr)
+            failed += 1
+            continue
         maps = seen["maps"]
         shown = np.asarray(Image.fromarray(image).resize((hw[1], hw[0]), Image.BILINEAR))
         write_png(out / f"{p.stem}.png", panel(shown, maps, a.window))
         fg = maps[0] > est.post["threshold"]
         print(f"{p}: read at {hw[1]}x{hw[0]} px; foreground {fg.mean():.0%} of the pixels; "
               f"wrote {out / (p.stem + '.png')}")
-    return 0
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
