@@ -14,8 +14,9 @@ import pytest
 from PIL import Image
 from scipy import ndimage
 
+from psdfactory.config import AUTO_SCALE_MARGIN, AUTO_SCALE_PROBE, LEGACY_AUTO_SCALE_PROBE
 from psdfactory.deploy import predict
-from psdfactory.deploy.predict import AUTO_SCALE_MIN_PX, AUTO_SCALE_PROBE, choose_scale
+from psdfactory.deploy.predict import AUTO_SCALE_MIN_PX, choose_scale
 from psdfactory.learn.instances.estimator import InstanceEstimator, readout_problems
 from psdfactory.learn.instances.targets import encode_size
 
@@ -24,7 +25,8 @@ from .test_photos import META, NET_MM, local_maps, read_csv
 pytest.importorskip("skimage")
 
 GRAIN_PX, GRAIN_PX_MAX = 16.0, 24.0  # how large the stand-in models' validation grains look: median, largest
-SIZES = {"grain_px": GRAIN_PX, "grain_px_max": GRAIN_PX_MAX, "grain_px_probe_max": GRAIN_PX_MAX}
+SIZES = {"grain_px": GRAIN_PX, "grain_px_max": GRAIN_PX_MAX, "grain_px_probe_max": GRAIN_PX_MAX,
+         "grain_px_probe_scale": AUTO_SCALE_PROBE}
 
 
 class Looks:
@@ -53,12 +55,12 @@ def test_grains_as_large_as_the_validation_grains_are_read_at_the_model_scale():
     for true_px in (GRAIN_PX, GRAIN_PX / 3, GRAIN_PX_MAX):
         looks = Looks(true_px)
         assert looks.choose() == 1.0
-        assert looks.asked == [AUTO_SCALE_PROBE]  # one look at a quarter of the scale, no second
+        assert looks.asked == [AUTO_SCALE_PROBE]  # one look at half the scale, no second
 
 
 def test_larger_grains_are_read_where_they_look_as_large_as_the_median_validation_grain(caplog):
     with caplog.at_level(logging.INFO, logger="psdfactory.deploy.predict"):
-        for true_px in (1.1 * GRAIN_PX_MAX, 4 * GRAIN_PX, 6 * GRAIN_PX):
+        for true_px in (1.5 * GRAIN_PX_MAX, 4 * GRAIN_PX, 6 * GRAIN_PX):
             looks = Looks(true_px)
             assert looks.choose() == pytest.approx(GRAIN_PX / true_px)
             assert looks.asked[0] == AUTO_SCALE_PROBE and looks.asked[-1] == pytest.approx(GRAIN_PX / true_px)
@@ -74,14 +76,31 @@ def test_never_coarser_than_the_smallest_side_allows():
 
 
 def test_the_second_look_corrects_the_probe():
-    """Grains of 256 px under a network that sees none larger than 24 px: the probe (at 0.25) says
-    they look 96 px, so 1/6; the look there says 144 px: read again at 1/9, nearer their size."""
+    """Grains of 256 px under a network that sees none larger than 24 px: the probe (at 0.5) says
+    they look 48 px, so 1/3; the look there says 72 px: read again at 2/9, nearer their size."""
     looks = Looks(16 * GRAIN_PX, most_px=24)
-    assert looks.choose() == pytest.approx(GRAIN_PX / 144)
-    assert looks.asked == [AUTO_SCALE_PROBE, pytest.approx(GRAIN_PX / 96)]
+    assert looks.choose() == pytest.approx(GRAIN_PX / 72)
+    assert looks.asked == [AUTO_SCALE_PROBE, pytest.approx(GRAIN_PX / 48)]
     # a scale within 10 % of one looked at already keeps that one (read_at_scale reads its outputs again)
-    looks = Looks(4 * GRAIN_PX, most_px=4 * GRAIN_PX * AUTO_SCALE_PROBE * 0.95)  # says 0.263: the probe's 0.25
+    looks = Looks(66.0, most_px=16.5)  # the probe says 33 px: 0.485, the probe's 0.5
     assert looks.choose() == AUTO_SCALE_PROBE and looks.asked == [AUTO_SCALE_PROBE, AUTO_SCALE_PROBE]
+
+
+def test_grains_a_little_larger_than_the_validation_grains_are_read_at_the_model_scale():
+    """Under AUTO_SCALE_MARGIN times the validation grains' largest look at the probe: the model's scale."""
+    looks = Looks(0.98 * AUTO_SCALE_MARGIN * GRAIN_PX_MAX)
+    assert looks.choose() == 1.0 and looks.asked == [AUTO_SCALE_PROBE]
+    looks = Looks(1.05 * AUTO_SCALE_MARGIN * GRAIN_PX_MAX)
+    assert looks.choose() < 1.0
+
+
+def test_a_model_of_before_the_probe_factor_probes_at_a_quarter_without_the_margin():
+    """A model whose meta does not say at which factor its validation grains were probed was
+    probed at a quarter of the scale, and is read as it was then."""
+    legacy = {k: v for k, v in SIZES.items() if k != "grain_px_probe_scale"}
+    looks = Looks(1.1 * GRAIN_PX_MAX, meta=legacy)
+    assert looks.choose() == pytest.approx(GRAIN_PX / (1.1 * GRAIN_PX_MAX))
+    assert looks.asked[0] == LEGACY_AUTO_SCALE_PROBE
 
 
 def test_grains_the_probe_oversizes_but_the_second_look_finds_in_range_are_read_at_the_model_scale():
@@ -142,6 +161,10 @@ def test_a_model_meta_with_bad_grain_sizes_is_refused():
     for bad in (-1, 0, float("nan"), "12", True, None, GRAIN_PX_MAX + 1):
         assert message in readout_problems(dict(meta, **dict(SIZES, grain_px=bad))), bad
     assert message in readout_problems(dict(meta, grain_px=12.5, grain_px_max=30.0))  # one missing
+    probe = "grain_px_probe_scale must be a factor of the scale between 0 and 1"
+    assert probe not in readout_problems(dict(meta, **SIZES))
+    for bad in (0, 1.0, 2, "0.5", float("nan")):
+        assert probe in readout_problems(dict(meta, **dict(SIZES, grain_px_probe_scale=bad))), bad
 
 
 # ---- through predict, on the instance estimator -------------------------------------------------
@@ -201,9 +224,10 @@ def test_large_grains_are_read_coarser_and_measured_in_mm_all_the_same(sized_mod
     scale = float(grains[0]["mask_mm_per_px"])
     if auto:
         assert scale == pytest.approx(4 * NET_MM, rel=0.02)
-        assert sized_model == [(128, 128)]  # the probe's outputs, read: no pass at the model's scale
-        assert "bed.png: its grains look 64 px at the model's scale, larger than on any of the model's validation " \
-               "images (at most 24 px): read at 0.25" in caplog.text
+        assert sized_model[0] == (256, 256) and len(sized_model) == 2  # the probe, then a quarter: not 512 px
+        assert "bed.png: its grains look 6" in caplog.text
+        assert "px at the model's scale, larger than on any of the model's validation images (at most 24 px): read " \
+               "at 0.25" in caplog.text
     else:
         assert scale == pytest.approx(NET_MM) and sized_model == [(512, 512)]
         assert "x the model's scale" not in caplog.text
@@ -213,7 +237,7 @@ def test_grains_of_the_training_size_cost_one_small_look(sized_model, tmp_path):
     Image.fromarray(discs(512, 16)).save(tmp_path / "bed.png")
     rows = predict.predict_files(tmp_path / "m.pt", [str(tmp_path / "bed.png")], mm_per_px=NET_MM,
                                  particles_out=tmp_path / "p.csv", auto_scale=True)
-    assert rows[0]["error"] == "" and sized_model == [(128, 128), (512, 512)]
+    assert rows[0]["error"] == "" and sized_model == [(256, 256), (512, 512)]
     assert {float(r["mask_mm_per_px"]) for r in read_csv(tmp_path / "p.csv")} == {NET_MM}
 
 
@@ -227,7 +251,7 @@ def test_predict_auto_scale_flag(sized_model, tmp_path):
     assert sized_model == [(256, 256)]
     sized_model.clear()
     assert main([*args, "--auto-scale", str(tmp_path / "bed.png")]) == 0
-    assert sized_model[0] == (64, 64) and (256, 256) not in sized_model
+    assert sized_model[0] == (128, 128) and (256, 256) not in sized_model
 
 
 def test_a_photo_set_reads_as_predict_auto_scale_where_it_says_so(tmp_path):
@@ -241,8 +265,9 @@ def test_a_photo_set_reads_as_predict_auto_scale_where_it_says_so(tmp_path):
 
 def test_training_records_the_validation_grains_sizes_at_both_scales():
     """grain_sizes: the median and largest apparent size of the validation maps, and the largest
-    of the same images looked at a quarter of the scale (here a network reading every image's grains
-    as half its side), in px at the model's scale; nothing where no grain is seen."""
+    of the same images looked at AUTO_SCALE_PROBE of the scale (here a network reading every image's
+    grains as half its side), in px at the model's scale, with that factor; nothing where no grain is
+    seen."""
     import torch
 
     from psdfactory.learn.instances.training import grain_sizes
@@ -257,7 +282,8 @@ def test_training_records_the_validation_grains_sizes_at_both_scales():
     x = torch.zeros((3, 3, 64, 64), dtype=torch.uint8)
     assert grain_sizes(Stand(), x, [10.0, 20.0, 30.0]) == {"grain_px": 20.0, "grain_px_max": 30.0,
                                                             "grain_px_probe_max": 64 * AUTO_SCALE_PROBE / 2
-                                                            / AUTO_SCALE_PROBE}
+                                                            / AUTO_SCALE_PROBE,
+                                                            "grain_px_probe_scale": AUTO_SCALE_PROBE}
     assert grain_sizes(Stand(), x, [None, None, None]) == {}
 
 

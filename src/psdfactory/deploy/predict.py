@@ -18,11 +18,11 @@ import torch
 from torch.nn import functional as F
 
 from .. import PsdError
-from ..config import AUTO_SCALE_PROBE, PREDICT_TILE_PX
+from ..config import AUTO_SCALE_MARGIN, LEGACY_AUTO_SCALE_PROBE, PREDICT_TILE_PX
 from ..io import read_photo, same_file, write_json
 from ..learn.calibration import apply_calibration, calibration_note
 from ..learn.data import to_input
-from ..learn.estimator import GRAIN_SIZE_KEYS, Estimator, reading_of
+from ..learn.estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS, Estimator, reading_of
 from ..photoset import IMAGE_SUFFIXES
 from ..psd import TARGETS
 
@@ -144,9 +144,11 @@ MAX_TILED_PIXELS = 8192 * 8192
 
 # Grains that look larger than those a model trained on are cut along their texture: the network sees a patch of a
 # grain, not the grain. Like Cellpose reading an image at its cells' diameter, predict reads such a photo at a
-# coarser scale (`choose_scale`): a probe at AUTO_SCALE_PROBE of the model's scale says how large the grains look
-# (Estimator.apparent_grain_px); where that is more than on any of the model's validation images seen the same way
-# (meta grain_px_probe_max), the photo is read where they look the validation images' median size (meta grain_px),
+# coarser scale (`choose_scale`): a probe at AUTO_SCALE_PROBE of the model's scale (the factor training recorded,
+# meta grain_px_probe_scale) says how large the grains look (Estimator.apparent_grain_px); where that is more than
+# AUTO_SCALE_MARGIN times the largest of the model's validation images seen the same way (meta grain_px_probe_max;
+# a model without the factor: a quarter of the scale, no margin, as it was trained for), the photo is read where
+# they look the validation images' median size (meta grain_px),
 # checked there against the largest at the model's scale (grain_px_max). Never finer than the model's scale, never
 # with the photo's shorter side under AUTO_SCALE_MIN_PX; a photo whose grains look as the validation images' do is
 # read at the model's scale, as before.
@@ -272,14 +274,17 @@ def image_outputs(est: Estimator, x: torch.Tensor, tile: int | None = DEFAULT_TI
 
 def choose_scale(est: Estimator, shorter_side: int, outputs_at, where: str = "") -> float:
     """The factor of the model's scale to read a photo at: 1, or less where its grains look larger
-    than the model's validation grains (see AUTO_SCALE_PROBE). `shorter_side`: the photo's shorter
+    than the model's validation grains (see AUTO_SCALE_PROBE, AUTO_SCALE_MARGIN). `shorter_side`: the photo's shorter
     side in px at the model's scale; `outputs_at(scale)` → the estimator's outputs of the photo at
     that factor. 1 without the estimator's `auto_scale`, the meta's grain sizes or an apparent one."""
     trained, most, probe_most = (est.meta.get(k) for k in GRAIN_SIZE_KEYS)
     if not est.auto_scale or None in (trained, most, probe_most):
         return 1.0
+    probe_scale = est.meta.get(GRAIN_PROBE_KEY)
+    margin = 1.0 if probe_scale is None else AUTO_SCALE_MARGIN  # a model of before: as it was trained for
+    probe_scale = LEGACY_AUTO_SCALE_PROBE if probe_scale is None else float(probe_scale)
     lowest = AUTO_SCALE_MIN_PX / shorter_side
-    probe = max(AUTO_SCALE_PROBE, lowest)
+    probe = max(probe_scale, lowest)
     if probe >= 1.0:
         return 1.0  # too few pixels to look coarser
 
@@ -293,7 +298,7 @@ def choose_scale(est: Estimator, shorter_side: int, outputs_at, where: str = "")
     seen = looks(probe)
     # a photo too small for the probe's factor is looked at coarser than 1 but finer than it: its look is compared
     # with the validation grains' largest at the model's scale
-    if seen is None or seen <= (probe_most if probe == AUTO_SCALE_PROBE else most):
+    if seen is None or seen <= margin * (probe_most if probe == probe_scale else most):
         return 1.0
     scale = near(max(min(1.0, trained / seen), lowest), probe)
     again = looks(scale)  # seen nearer the training size, the grains are sized better: read where that says

@@ -18,7 +18,7 @@ from torch import nn
 from ... import PsdError
 from ...psd import FOOTPRINT_DEFINITIONS, GRAIN_WEIGHTINGS, NAMES, SOLID_DEFINITIONS, TARGETS, weighted_percentiles
 from ..augment import TTA_VIEWS, unview, view
-from ..estimator import GRAIN_SIZE_KEYS, DatasetScorer, Estimator, Reading, model_definition
+from ..estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS, DatasetScorer, Estimator, Reading, model_definition
 from ..readout import apply_readout
 from . import ARCH
 from .measure import DEFAULT_SIEVE_METHOD, SIEVE_METHODS, InstanceMeasurements, measure_instances, sieve_size
@@ -306,6 +306,9 @@ def readout_problems(meta: dict) -> list[str]:
     sizes = [meta.get(k) for k in GRAIN_SIZE_KEYS]
     if any(v is not None for v in sizes) and not (all(num(v) and v > 0 for v in sizes) and sizes[0] <= sizes[1]):
         problems.append(f"{', '.join(GRAIN_SIZE_KEYS)} must be positive numbers (px), grain_px <= grain_px_max")
+    probe = meta.get(GRAIN_PROBE_KEY)
+    if probe is not None and not (num(probe) and 0 < probe < 1):
+        problems.append(f"{GRAIN_PROBE_KEY} must be a factor of the scale between 0 and 1")
     if meta.get("tta", "none") not in TTA_VIEWS:
         problems.append(f"tta must be one of {', '.join(TTA_VIEWS)}")
     if meta.get("sieve_method") not in SIEVE_METHODS:

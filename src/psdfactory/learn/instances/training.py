@@ -23,7 +23,7 @@ from ...psd import NAMES, SOLID_DEFINITIONS, TARGETS, definition_targets
 from ..augment import TTA_VIEWS, photometric
 from ..data import label_definition, normalise, particles_by_scene, training_rows
 from ..data import targets as label_targets
-from ..estimator import GRAIN_SIZE_KEYS
+from ..estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS
 from ..fit import FitTask, fingerprint, fit, write_history
 from ..metrics import regression_metrics
 from ..models import count_parameters
@@ -122,7 +122,8 @@ def grain_sizes(est, x_val: torch.Tensor, val_maps: np.ndarray) -> dict:
     scale, `apparent_grain_px`), for predict's automatic scale: `grain_px`, the median over the
     images, `grain_px_max`, the largest, and `grain_px_probe_max`, the largest as seen at
     AUTO_SCALE_PROBE of the scale (there a network's size map reads grains seen small larger than
-    they are: predict compares a photo's look there with this one). Empty without a size map."""
+    they are: predict compares a photo's look there with this one), and that factor
+    (`grain_px_probe_scale`). Empty without a size map."""
     from torch.nn import functional as F
 
     seen = [g for g in map(est.apparent_grain_px, val_maps) if g is not None]
@@ -132,7 +133,8 @@ def grain_sizes(est, x_val: torch.Tensor, val_maps: np.ndarray) -> dict:
     if not seen or not probed:
         return {}
     sizes = (np.median(seen), np.max(seen), np.max(probed))
-    return {k: round(float(v), 3) for k, v in zip(GRAIN_SIZE_KEYS, sizes, strict=True)}
+    return {**{k: round(float(v), 3) for k, v in zip(GRAIN_SIZE_KEYS, sizes, strict=True)},
+            GRAIN_PROBE_KEY: AUTO_SCALE_PROBE}
 
 
 def train_instances(params, settings: InstanceSettings, results_root: Path, out_dir: Path, estimator: type) -> dict:
