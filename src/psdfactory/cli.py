@@ -544,7 +544,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--auto-scale", action="store_true",
                    help="instance models, with --mm-per-px: where a photo's grains look larger than the grains the "
                    "model trained on (cobbles under a model of finer rock), read it at the coarser scale that shows "
-                   "them at that size, as a first look at a quarter of the model's scale finds; the log says when. "
+                   "them at that size, as a first look at half the model's scale finds; the log says when. "
                    "Grains larger than the network sees at once are otherwise cut along their texture. Off by "
                    "default: a look the model was not trained on (e.g. bright tables) can make grains look larger "
                    "than they are (docs/photos.md)")
