@@ -68,6 +68,15 @@ def test_larger_grains_are_read_where_they_look_as_large_as_the_median_validatio
            "images (at most 24 px): read at 0.167 x the model's scale, where they look 16 px" in caplog.text
 
 
+def test_a_photo_too_small_for_the_probe_is_compared_at_the_model_scale_without_the_margin():
+    """A shorter side under AUTO_SCALE_MIN_PX / AUTO_SCALE_PROBE: the first look is as coarse as the side allows and
+    is compared with the validation grains' largest at the model's scale, as it is (the margin is the probe's)."""
+    side = int(AUTO_SCALE_MIN_PX / AUTO_SCALE_PROBE) - 28  # 100 px: the look at 0.64
+    looks = Looks(1.15 * GRAIN_PX_MAX)
+    assert looks.choose(shorter_side=side) < 1.0
+    assert looks.asked[0] == pytest.approx(AUTO_SCALE_MIN_PX / side)
+
+
 def test_never_coarser_than_the_smallest_side_allows():
     looks = Looks(100 * GRAIN_PX)
     assert looks.choose(shorter_side=512) == pytest.approx(AUTO_SCALE_MIN_PX / 512)
@@ -224,7 +233,7 @@ def test_large_grains_are_read_coarser_and_measured_in_mm_all_the_same(sized_mod
     scale = float(grains[0]["mask_mm_per_px"])
     if auto:
         assert scale == pytest.approx(4 * NET_MM, rel=0.02)
-        assert sized_model[0] == (256, 256) and len(sized_model) == 2  # the probe, then a quarter: not 512 px
+        assert sized_model == [(256, 256), (129, 129)]  # the probe, then ~a quarter: never the model's 512 px
         assert "bed.png: its grains look 6" in caplog.text
         assert "px at the model's scale, larger than on any of the model's validation images (at most 24 px): read " \
                "at 0.25" in caplog.text
@@ -273,10 +282,13 @@ def test_training_records_the_validation_grains_sizes_at_both_scales():
     from psdfactory.learn.instances.training import grain_sizes
 
     class Stand:
+        seen: list = []
+
         def apparent_grain_px(self, maps):
             return maps
 
         def all_maps(self, x):
+            self.seen.append(tuple(x.shape[-2:]))
             return [x.shape[-1] / 2] * len(x)
 
     x = torch.zeros((3, 3, 64, 64), dtype=torch.uint8)
@@ -284,6 +296,7 @@ def test_training_records_the_validation_grains_sizes_at_both_scales():
                                                             "grain_px_probe_max": 64 * AUTO_SCALE_PROBE / 2
                                                             / AUTO_SCALE_PROBE,
                                                             "grain_px_probe_scale": AUTO_SCALE_PROBE}
+    assert Stand.seen == [(64 * AUTO_SCALE_PROBE,) * 2]  # the images shrunk by the factor the meta records
     assert grain_sizes(Stand(), x, [None, None, None]) == {}
 
 

@@ -31,15 +31,13 @@ MIN_INPUT_SIZE = {"inception_v3": 75}  # the smallest input (px) an architecture
 PREDICT_TILE_PX = 1024
 # predict's first look at a photo, as a factor of the model's scale: how large its grains look there (deploy/predict
 # choose_scale); training records how large its validation grains look at it (meta grain_px_probe_max) and at which
-# factor (grain_px_probe_scale). At half the scale the default's validation images read as at the model's scale
-# (~25 px) for every look trained on; at a quarter they read 46-98 px depending on the look (the grains are 3-6 px
-# there), which moved the reference past real photos' gravel (docs/experiments.md, 2026-11-26, the maps entry).
+# factor (grain_px_probe_scale). Half the scale, not a quarter: at a quarter the validation grains are a few px and
+# their reference depends on the look trained on (docs/experiments.md, "The automatic scale's first look").
 AUTO_SCALE_PROBE = 0.5
 # models trained before the factor was recorded probed at a quarter of the scale: they keep doing so
 LEGACY_AUTO_SCALE_PROBE = 0.25
 # a photo is read coarser only where its grains look this much larger at the probe than the largest validation
-# image's: in-range scenes read up to ~1.05x that largest at half the scale (Cycles re-renders), scenes at 3x the
-# resolution 2.2x (measured on the default's test scenes)
+# image's: between what in-range scenes and scenes of 3x larger grains read there (the same entry)
 AUTO_SCALE_MARGIN = 1.25
 PREDICT_RUNTIMES = ("auto", "torch", "onnx")  # what runs a model.pt's network in predict (deploy/fastpath.py)
 

@@ -298,7 +298,8 @@ def choose_scale(est: Estimator, shorter_side: int, outputs_at, where: str = "")
     seen = looks(probe)
     # a photo too small for the probe's factor is looked at coarser than 1 but finer than it: its look is compared
     # with the validation grains' largest at the model's scale
-    if seen is None or seen <= margin * (probe_most if probe == probe_scale else most):
+    # (the margin is of the probe's reference, where it was measured; the model's-scale one is compared as it is)
+    if seen is None or seen <= (margin * probe_most if probe == probe_scale else most):
         return 1.0
     scale = near(max(min(1.0, trained / seen), lowest), probe)
     again = looks(scale)  # seen nearer the training size, the grains are sized better: read where that says
