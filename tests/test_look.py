@@ -185,6 +185,9 @@ def test_gravel_config_is_valid():
     assert ds["shape"] == "granule"
     assert ds["table_size"] * np.mean(r["view_fraction"]) / r["resolution"] == pytest.approx(0.4)
     assert cfg["datasets"]["gravel_cycles"]["render"]["backend"] == "cycles"
+    sparse = cfg["datasets"]["gravel_sparse"]  # the same pebbles, fewer: the sand shows between them
+    assert sparse["shape"] == ds["shape"] and sparse["size"] == ds["size"] and max(sparse["count"]) < min(ds["count"])
+    assert cfg["train"]["instances"]["datasets"] == ["gravel", "gravel_sparse"]
 
 
 @pytest.mark.slow
