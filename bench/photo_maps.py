@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     from PIL import Image
 
     from psdfactory import PsdError
-    from psdfactory.deploy.predict import check_field_of_view, load_predictor, read_at_scale, target_size
+    from psdfactory.deploy.predict import load_predictor, network_size, read_at_scale
     from psdfactory.io import read_photo, write_png
 
     try:
@@ -88,12 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     failed = 0
     for p in map(Path, a.photos):
         try:
-            def need(h: int, w: int, p: Path = p) -> tuple[int, int]:
-                if a.mm_per_px is None:  # as predict: without a scale, only an image of the training images' size
-                    check_field_of_view(p, (h, w), est.meta)
-                return target_size(h, w, est.meta, a.mm_per_px)
-
-            image, size_hw = read_photo(p, need=need)
+            image, size_hw = read_photo(p, need=lambda h, w, p=p: network_size(p, h, w, est.meta, a.mm_per_px))
             _, hw = read_at_scale(est, image, size_hw, a.mm_per_px, where=str(p))
         except PsdError as e:
             print(f"{p}: {e}", file=sys.stderr)

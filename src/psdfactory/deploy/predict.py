@@ -166,6 +166,14 @@ def target_size(h: int, w: int, meta: dict, mm_per_px: float | None, scale: floa
     return max(32, round(h * k)), max(32, round(w * k))
 
 
+def network_size(path: Path | str, h: int, w: int, meta: dict, mm_per_px: float | None) -> tuple[int, int]:
+    """The (height, width) a photo of h x w px is read at by the network (`target_size`); without
+    `mm_per_px` only a photo of the training images' size is taken (`check_field_of_view`)."""
+    if mm_per_px is None:
+        check_field_of_view(path, (h, w), meta)
+    return target_size(h, w, meta, mm_per_px)
+
+
 def check_field_of_view(path: Path | str, size_hw: tuple[int, int], meta: dict) -> None:
     """Without --mm-per-px an image's scale is known only when it was made as the training images
     were: of their size (image_resolution px square, at the model's mm per px). Any other size is
@@ -280,9 +288,9 @@ def choose_scale(est: Estimator, shorter_side: int, outputs_at, where: str = "")
     trained, most, probe_most = (est.meta.get(k) for k in GRAIN_SIZE_KEYS)
     if not est.auto_scale or None in (trained, most, probe_most):
         return 1.0
-    probe_scale = est.meta.get(GRAIN_PROBE_KEY)
-    margin = 1.0 if probe_scale is None else AUTO_SCALE_MARGIN  # a model of before: as it was trained for
-    probe_scale = LEGACY_AUTO_SCALE_PROBE if probe_scale is None else float(probe_scale)
+    recorded = est.meta.get(GRAIN_PROBE_KEY)  # a model of before it: probed as it was trained for
+    probe_scale, margin = ((LEGACY_AUTO_SCALE_PROBE, 1.0) if recorded is None
+                           else (float(recorded), AUTO_SCALE_MARGIN))
     lowest = AUTO_SCALE_MIN_PX / shorter_side
     probe = max(probe_scale, lowest)
     if probe >= 1.0:
@@ -421,14 +429,8 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
     its overlay, mask and particle rows are written. `what`: the reading (``reading``)."""
     meta = est.meta
     what = what or reading(meta, None)
-
-    def network_size(h: int, w: int) -> tuple[int, int]:
-        if mm_per_px is None:
-            check_field_of_view(path, (h, w), meta)
-        return target_size(h, w, meta, mm_per_px)
-
     try:
-        image, size_hw = read_photo(path, need=network_size)
+        image, size_hw = read_photo(path, need=lambda h, w: network_size(path, h, w, meta, mm_per_px))
         found, _ = read_at_scale(est, image, size_hw, mm_per_px, tile, str(path))
         if grains is not None:
             grains.write(path, image, size_hw, found.grains)

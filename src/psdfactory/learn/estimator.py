@@ -75,7 +75,7 @@ class DatasetScorer:
 # largest, and their largest as seen at config.AUTO_SCALE_PROBE of the scale (instances.training.grain_sizes);
 # predict --auto-scale reads a photo at a coarser scale only with all three (deploy.predict.choose_scale)
 GRAIN_SIZE_KEYS = ("grain_px", "grain_px_max", "grain_px_probe_max")
-GRAIN_PROBE_KEY = "grain_px_probe_scale"  # the factor of the scale grain_px_probe_max was seen at (absent: a quarter)
+GRAIN_PROBE_KEY = "grain_px_probe_scale"  # the factor grain_px_probe_max was seen at (absent: LEGACY_AUTO_SCALE_PROBE)
 
 
 class Estimator:
