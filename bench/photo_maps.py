@@ -66,10 +66,11 @@ def main(argv: list[str] | None = None) -> int:
     from PIL import Image
 
     from psdfactory import PsdError
-    from psdfactory.deploy.predict import load_predictor, network_size, read_at_scale
+    from psdfactory.deploy.predict import check_outputs, load_predictor, network_size, read_at_scale
     from psdfactory.io import read_photo, write_png
 
     try:
+        check_outputs(Path(a.model), a.photos, other_dirs={"--out": Path(a.out)})  # refused before any work
         est = load_predictor(Path(a.model))
     except PsdError as e:
         ap.error(str(e))

@@ -81,17 +81,18 @@ def check_outputs(model: Path, inputs: list[str], **outputs: Path | None) -> Non
 
 def _check_outputs(model: Path, inputs: list[str], out: Path | None = None, masks_dir: Path | None = None,
                    overlay_dir: Path | None = None, particles_out: Path | None = None,
-                   log: Path | None = None) -> None:
+                   log: Path | None = None, other_dirs: dict[str, Path] | None = None) -> None:
     """Refuse, before any work, an output that would overwrite or mix with an input: a file output
     that is the model, an input image or another output, a file output with the wrong suffix or
     that is a folder, and an output folder that is or lies inside an input folder, holds an input
-    image, or is a file."""
+    image, or is a file. `other_dirs`: more output folders of a file per image, by their flag."""
     model = Path(model)
     folders = [Path(p) for p in inputs if is_dir(Path(p))]
     images = [Path(p) for p in inputs if not is_dir(Path(p))]
     files = {"--out": out, "--particles": particles_out, "--log": log}
     files = {k: Path(v) for k, v in files.items() if v is not None}
-    dirs = {k: Path(v) for k, v in {"--masks": masks_dir, "--overlay": overlay_dir}.items() if v is not None}
+    dirs = {k: Path(v) for k, v in {"--masks": masks_dir, "--overlay": overlay_dir, **(other_dirs or {})}.items()
+            if v is not None}
     for flag, path, suffixes in (("--out", files.get("--out"), (".csv", ".json")),
                                  ("--particles", files.get("--particles"), (".csv",))):
         if path is not None and path.suffix.lower() not in suffixes:
@@ -126,7 +127,7 @@ def _check_outputs(model: Path, inputs: list[str], out: Path | None = None, mask
                            "photos next time; choose a folder outside it")
         hit = next((i for i in images if same_file(i.parent, d)), None)
         if hit is not None:
-            raise PsdError(f"{flag} {d} holds the input image {hit}, which a mask or overlay could overwrite; "
+            raise PsdError(f"{flag} {d} holds the input image {hit}, which a file written there could overwrite; "
                            "choose another folder")
 
 
