@@ -55,7 +55,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("photos", nargs="+", help="photo files")
     ap.add_argument("--model", required=True, help="an instance model's model.pt")
-    ap.add_argument("--mm-per-px", type=float, default=None, help="the photos' scale (as predict's)")
+    from psdfactory.cli import mm_per_px_arg
+
+    ap.add_argument("--mm-per-px", type=mm_per_px_arg, default=None, help="the photos' scale (as predict's)")
     ap.add_argument("--auto-scale", action="store_true", help="read them as predict --auto-scale does")
     ap.add_argument("--window", type=int, default=600, help="px of the maps shown per side (default 600)")
     ap.add_argument("--out", default="photo_maps", help="folder for <photo stem>.png (default photo_maps/)")

@@ -133,6 +133,11 @@ def test_photo_maps_shows_the_photo_and_each_map_of_an_instance_model(tmp_path):
     assert shown.shape == (2 * 96, 3 * 160, 3)  # read at the model's 0.5 mm/px: twice the size, 96 x 160 px
     assert photo_maps.main(["--model", str(model), str(tmp_path / "missing.png"), "--out", str(tmp_path / "m2")]) == 1
     assert not (tmp_path / "m2" / "missing.png").exists()  # a photo that cannot be read: said, skipped, exit 1
+    for bad in ("0", "-1", "nan", "1e9"):  # a scale that is not a finite number in range: one line, nothing written
+        with pytest.raises(SystemExit):
+            photo_maps.main(["--model", str(model), f"--mm-per-px={bad}", str(tmp_path / "bed.png"),
+                             "--out", str(tmp_path / "m3")])
+    assert not (tmp_path / "m3").exists()
     before = (tmp_path / "bed.png").read_bytes()
     with pytest.raises(SystemExit):  # the panel of bed.png would overwrite bed.png: refused before any work
         photo_maps.main(["--model", str(model), "--mm-per-px", "1.0", str(tmp_path / "bed.png"),
