@@ -14,6 +14,10 @@ extracted with `git archive`), interleaved in rounds of W scenes so that both se
 by side: the stages, scenes per hour, the quality figures, and whether the sample stage's outputs
 are identical. --against REV compares with another revision instead of this working tree.
 
+--shape-library K runs the scenes with ``shape_library: K`` (the dataset's particles drawn from K
+shapes made once per worker process or batch job); two values (e.g. ``--shape-library 0 2048``)
+run this tree twice, one side each, interleaved as --compare does.
+
 --dag N also runs the workflow (`snakemake -j2 scenes`: every stage in scenes_per_job batches,
 the manifests and contact sheets) on N scenes of the config with each side's code, alternately,
 and prints the wall time and scenes per hour.
@@ -55,11 +59,13 @@ def one_scene(args: tuple) -> dict:
     from psdfactory.config import load_config
     from psdfactory.scene.stages import load_poses, run_label, run_render, run_sample, run_simulate
 
-    config_path, resolution, count, index, root = args
+    config_path, resolution, count, index, root, library = args
     cfg = load_config(config_path)
     cfg["render"]["resolution"] = resolution
     if count:
         cfg["datasets"]["train"]["count"] = list(count)
+    if library is not None:
+        cfg["datasets"]["train"]["shape_library"] = library
     d = Path(root) / "train" / "scenes" / f"train-{index:06d}"
     steps = [
         ("sample", run_sample, psd_config.sample_params(cfg, "train", index)),
@@ -106,8 +112,8 @@ def import_cost(env: dict, repeats: int = 5) -> float:
 class Side:
     """One revision's code: its src/ folder, a worker pool importing it, its scenes and times."""
 
-    def __init__(self, name: str, tree: Path, workers: int, root: Path):
-        self.name, self.tree, self.root = name, tree, root
+    def __init__(self, name: str, tree: Path, workers: int, root: Path, library: int | None = None):
+        self.name, self.tree, self.root, self.library = name, tree, root, library
         self.pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_use_tree,
                                         initargs=(str(tree / "src"),))
         self.rows: list[dict] = []
@@ -116,7 +122,8 @@ class Side:
 
     def run(self, config: str, resolution: int, count, indices: list[int]) -> None:
         t0 = time.perf_counter()
-        futs = [self.pool.submit(one_scene, (config, resolution, count, i, str(self.root))) for i in indices]
+        futs = [self.pool.submit(one_scene, (config, resolution, count, i, str(self.root), self.library))
+                for i in indices]
         self.rows += [f.result() for f in futs]
         self.wall += time.perf_counter() - t0
 
@@ -140,6 +147,17 @@ def describe(rev: str | None) -> str:
         return f"the working tree (HEAD {describe('HEAD')}{', src/ modified' if dirty else ''})"
     return subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", rev], capture_output=True, text=True,
                           check=True).stdout.strip()
+
+
+def library_cost(config: str, size: int) -> float:
+    """Seconds of CPU to make and measure a shape library of `size` shapes of the config's train set."""
+    from psdfactory.config import load_config
+    from psdfactory.scene.shapes import ShapeParams, shape_library
+
+    ds = load_config(config)["datasets"]["train"]
+    c0 = time.process_time()
+    shape_library(ds["shape"], ShapeParams.for_family(ds["shape"], ds["shape_params"]), size, (0, 0, 9))
+    return time.process_time() - c0
 
 
 def med(rows: list[dict], key: str) -> float:
@@ -200,7 +218,7 @@ def same_samples(sides: list[Side]) -> str:
     return f"{len(a.rows) - differ} of {len(a.rows)} scenes identical (spec.json, geometry.npz)"
 
 
-def dag_config(a: argparse.Namespace, results: Path, n: int) -> dict:
+def dag_config(a: argparse.Namespace, results: Path, n: int, library: int | None = None) -> dict:
     import yaml
 
     cfg = yaml.safe_load(Path(a.config).read_text())
@@ -208,6 +226,8 @@ def dag_config(a: argparse.Namespace, results: Path, n: int) -> dict:
     train.update(n_scenes=n, shard_size=n)
     if a.count:
         train["count"] = list(a.count)
+    if library is not None:
+        train["shape_library"] = library
     cfg["datasets"] = {"train": train}  # a re-render for Cycles (paper.yaml's train_cycles) left out
     cfg["results"] = str(results)
     cfg.setdefault("render", {})["resolution"] = a.resolution
@@ -244,14 +264,27 @@ def main() -> None:
     ap.add_argument("--dag", type=int, default=0, metavar="N", help="also run the workflow on N scenes per side")
     ap.add_argument("--dag-repeats", type=int, default=1)
     ap.add_argument("--scenes-per-job", type=int, help="the workflow's batches (default: the config's)")
+    ap.add_argument("--shape-library", type=int, nargs="+", metavar="K",
+                    help="shape_library of the scenes; two values: two sides of this tree (e.g. 0 2048)")
     a = ap.parse_args()
+    if a.shape_library and len(a.shape_library) > 2:
+        ap.error("--shape-library takes one or two values")
+    if a.shape_library and len(a.shape_library) == 2 and (a.compare or a.against):
+        ap.error("--shape-library with two values compares this tree with itself: not with --compare/--against")
     a.config = str(Path(a.config).resolve())
 
     with tempfile.TemporaryDirectory(prefix="scene_throughput-") as tmp:
         tmp = Path(tmp)
         new_tree = extract(a.against, tmp / "new-code") if a.against else REPO
-        sides = [Side("after" if a.compare else "now", new_tree, a.workers, tmp / "new")]
+        libs = a.shape_library or [None]
+        sides = [Side("after" if a.compare else "now", new_tree, a.workers, tmp / "new", libs[-1])]
         print(f"{sides[0].name}: {describe(a.against)}")
+        if len(libs) == 2:
+            sides = [Side(f"library {k}", REPO, a.workers, tmp / f"lib{k}", k) for k in libs]
+            print(f"both sides: {describe(None)}; shape_library {libs[0]} and {libs[1]}")
+            print(f"building a library of {libs[1]} shapes takes {library_cost(a.config, libs[1]):.2f} s "
+                  "(once per worker process or batch job; included in the workflow's figures, in the "
+                  "first scene of each worker above)")
         if a.compare:
             sides.insert(0, Side("before", extract(a.compare, tmp / "old-code"), a.workers, tmp / "old"))
             print(f"before: {describe(a.compare)}")
@@ -273,7 +306,10 @@ def main() -> None:
         if a.scenes:
             quality_table(sides)
         if len(sides) == 2 and a.scenes:
-            print(f"sample stage: {same_samples(sides)}")
+            if sides[0].library == sides[1].library:
+                print(f"sample stage: {same_samples(sides)}")
+            else:
+                print("sample stage: other shapes by design (another shape_library)")
             old, new = sides
             print(f"\n{'':<28}{old.name:>16}{new.name:>16}{'ratio':>8}")
             for st in STAGES:
@@ -295,7 +331,7 @@ def main() -> None:
             for rep in range(a.dag_repeats):
                 for s in (sides if rep % 2 == 0 else sides[::-1]):
                     work = tmp / f"dag-{rep}-{len(walls[s.name])}-{s.name.split()[0]}"
-                    walls[s.name].append(dag_run(s, dag_config(a, work / "results", a.dag), work))
+                    walls[s.name].append(dag_run(s, dag_config(a, work / "results", a.dag, s.library), work))
                     shutil.rmtree(work, ignore_errors=True)
                     print(f"  workflow, {s.name}: {a.dag} scenes in {walls[s.name][-1]:.0f} s", flush=True)
             per_job = a.scenes_per_job or dag_config(a, tmp, a.dag).get("scenes_per_job", 1)

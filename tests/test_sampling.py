@@ -91,3 +91,75 @@ def test_drop_positions_spread_out_better_than_uniform():
 def test_particle_too_big_for_table():
     with pytest.raises(PsdError, match="does not fit"):
         drop_positions(np.random.default_rng(0), np.array([40.0]), np.array([1.0]), 50.0, 1, 2.0)
+
+
+# ---- shape_library: a dataset's scenes draw their particles from K shapes made once -----------
+
+def test_shape_library_scenes_draw_scaled_library_shapes_with_their_exact_sizes():
+    from psdfactory.scene.sizes import box_and_sieve
+
+    cfg = tiny_config(shape_library=16)
+    spec, geo = sample_scene(_params(cfg, 0))
+    n = spec["samplesize"]
+    v, off = geo["vertices"].astype(float), geo["vert_offsets"]
+    meshes = [v[off[i]:off[i + 1]] for i in range(n)]
+    # at most 16 shapes: a particle's shape up to its scale is one of a few
+    shapes = {(len(m), round(float(np.linalg.norm(m, axis=1).max() / geo["size_mm"][i]), 5))
+              for i, m in enumerate(meshes)}
+    assert len(shapes) <= 16 < n
+    # the sizes are each particle's own, as the unique shapes' are: the drawn size is its b-axis
+    # and the sieve size and volume are those measured on the particle as stored
+    np.testing.assert_allclose(geo["size_mm"], [p["size"] for p in spec["particles"]], atol=1e-4)
+    dims, sieve = box_and_sieve(meshes)
+    np.testing.assert_allclose(sieve, geo["sieve_mm"], rtol=2e-3)
+    np.testing.assert_allclose(np.median(dims[:, 1] / geo["size_mm"]), 1.0, atol=1e-3)
+    from psdfactory.scene.shapes import volume_and_centroid
+    for i in range(0, n, 7):
+        f = geo["faces"][geo["face_offsets"][i]:geo["face_offsets"][i + 1]]
+        vol, centre = volume_and_centroid(meshes[i], f)
+        assert vol == pytest.approx(geo["volume_mm3"][i], rel=1e-4)
+        np.testing.assert_allclose(centre, 0, atol=1e-3)  # centred on its centre of volume
+
+
+def test_shape_library_is_reproducible_and_the_datasets_own():
+    cfg = tiny_config(shape_library=16)
+    cfg["datasets"]["other"] = dict(cfg["datasets"]["tiny"])
+    a, ga = sample_scene(_params(cfg, 1))
+    b, gb = sample_scene(_params(cfg, 1))
+    assert a == b and all(np.array_equal(ga[k], gb[k]) for k in ga)
+    other = sample_scene(SampleParams.from_dict(psd_config.sample_params(cfg, "other", 1)))[1]
+    # another dataset (a test set beside a training set) draws from shapes of its own
+    assert not set(np.round(ga["sieve_mm"] / ga["size_mm"], 6)) & set(np.round(other["sieve_mm"] / other["size_mm"], 6))
+
+
+def test_shape_library_zero_is_the_scene_of_before():
+    """The default (0) adds nothing to a scene's params or its hash: scenes made before the
+    library existed are still up to date, and the same as before."""
+    cfg = tiny_config()
+    params = psd_config.sample_params(cfg, "tiny", 0)
+    assert "shape_library" not in params
+    p = SampleParams.from_dict(params)
+    spec, _ = sample_scene(p)
+    from psdfactory.scene.sampling import config_hash
+    legacy = {k: (list(v) if isinstance(v, tuple) else v) for k, v in p.__dict__.items() if k != "shape_library"}
+    assert spec["config_hash"] == config_hash(legacy)
+    lib = tiny_config(shape_library=8)
+    assert psd_config.sample_params(lib, "tiny", 0)["shape_library"] == 8
+    assert sample_scene(SampleParams.from_dict(psd_config.sample_params(lib, "tiny", 0)))[0]["config_hash"] != \
+        spec["config_hash"]
+
+
+def test_shape_library_is_refused_for_user_meshes_and_inherited_by_a_rerender(tmp_path):
+    import trimesh
+
+    mesh = tmp_path / "rock.stl"
+    trimesh.creation.icosphere(subdivisions=1, radius=3.0).export(mesh)
+    with pytest.raises(PsdError, match=r"tiny\.shape_library: shape 'mesh' draws from its mesh files"):
+        tiny_config(shape="mesh", shape_params={"mesh_files": [str(mesh)]}, shape_library=4)
+    with pytest.raises(PsdError, match="shape_library"):
+        tiny_config(shape_library=-1)
+    cfg = dict(tiny_config(shape_library=8))
+    again = {"rerender_of": {"dataset": "tiny", "split": ["train", "val", "test"]}}
+    cfg["datasets"] = {**cfg["datasets"], "again": again}
+    cfg = psd_config.validate(cfg)
+    assert cfg["datasets"]["again"]["shape_library"] == 8

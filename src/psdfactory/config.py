@@ -356,7 +356,7 @@ def resolve_datasets(config: dict) -> list[str]:
         if "rerender_of" not in ds:
             continue
         src = config["datasets"][ds["rerender_of"]["dataset"]]
-        for k in ("shape", "shape_params", "table_size", "count", "size", "placement"):
+        for k in ("shape", "shape_params", "shape_library", "table_size", "count", "size", "placement"):
             ds[k] = copy.deepcopy(src[k])
         n = len(source_indices(config, name, cap=False))
         ds["n_scenes"] = min(ds.get("n_scenes", n), n)
@@ -457,6 +457,9 @@ def semantic_problems(config: dict) -> list[str]:
             if "rerender_of" not in ds:  # a re-render's meshes are its source's, checked there
                 problems += [f"{key}.shape_params.mesh_files[{i}]: {p}" for i, f in enumerate(files)
                              if (p := mesh_file_problem(f))]
+            if ds["shape_library"]:
+                problems.append(f"{key}.shape_library: shape 'mesh' draws from its mesh files; set it to 0 "
+                                "(a library is for the generated families)")
         elif sp.get("mesh_files"):
             problems.append(f"{key}.shape_params.mesh_files: only used with shape 'mesh' (shape is {ds['shape']!r})")
     renders = [("render", config["render"])] + [(f"datasets.{n}.render", ds["render"])
@@ -572,6 +575,8 @@ def sample_params(config: dict, dataset: str, index: int | None = None) -> dict:
         "size": copy.deepcopy(ds["size"]),
         "placement": copy.deepcopy(ds["placement"]),
     }
+    if ds["shape_library"]:  # (left out at 0, its default: scenes made before it existed stay up to date)
+        out["shape_library"] = ds["shape_library"]
     if index is not None:
         out["index"] = int(index)
     return out

@@ -15,7 +15,8 @@ import numpy as np
 # changing one changes every scene. "look" holds the render settings added after the first
 # ones (scale, table/particle texture, light colour, JPEG), drawn apart so that the "render"
 # stream's draws (light, colours, texture noise, sensor noise) stay what they were.
-STREAMS = {"sample": 1, "shape": 2, "simulate": 3, "render": 4, "split": 5, "look": 6, "distractors": 7, "markings": 8}
+STREAMS = {"sample": 1, "shape": 2, "simulate": 3, "render": 4, "split": 5, "look": 6, "distractors": 7, "markings": 8,
+           "shape_library": 9}  # a dataset's (seed, dataset, 9): the shapes its scenes draw from
 
 
 def name_key(name: str) -> int:

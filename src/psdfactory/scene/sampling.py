@@ -15,8 +15,8 @@ import numpy as np
 from scipy.special import ndtr, ndtri
 
 from .. import PsdError, __version__
-from ..seeding import rng_for, scene_entropy, scene_id
-from .shapes import ShapeParams, make_particles, pack
+from ..seeding import STREAMS, name_key, rng_for, scene_entropy, scene_id
+from .shapes import ShapeParams, make_particles, pack, shape_library
 
 
 @dataclass(frozen=True)
@@ -36,6 +36,7 @@ class SampleParams:
     shape_params: dict
     placement_candidates: int
     placement_cell_mm: float
+    shape_library: int  # 0: every particle a shape of its own; K: one of K shapes made once (shapes.shape_library)
 
     @classmethod
     def from_dict(cls, d: dict) -> SampleParams:
@@ -62,6 +63,7 @@ class SampleParams:
             shape_params=dict(d["shape_params"]),
             placement_candidates=int(placement["candidates"]),
             placement_cell_mm=float(placement["cell_mm"]),
+            shape_library=int(d.get("shape_library", 0)),  # (config.sample_params leaves out 0, the off value)
         )
 
 
@@ -148,7 +150,11 @@ def sample_scene(p: SampleParams) -> tuple[dict, dict[str, np.ndarray]]:
     n, mean, sigma, sizes = draw_sizes(p, rng)
 
     shape_params = ShapeParams.for_family(p.shape, p.shape_params)
-    particles = make_particles(p.shape, sizes, rng_for(entropy, "shape"), shape_params)
+    library = None
+    if p.shape_library:  # one per dataset and seed: a test split's shapes are not the training split's
+        library = shape_library(p.shape, shape_params, p.shape_library,
+                                (p.seed, name_key(p.dataset), STREAMS["shape_library"]))
+    particles = make_particles(p.shape, sizes, rng_for(entropy, "shape"), shape_params, library)
     geometry = pack(particles)
     xy = drop_positions(
         rng,
@@ -158,7 +164,9 @@ def sample_scene(p: SampleParams) -> tuple[dict, dict[str, np.ndarray]]:
         candidates=p.placement_candidates,
         cell_mm=p.placement_cell_mm,
     )
-    params_dict = {k: (list(v) if isinstance(v, tuple) else v) for k, v in p.__dict__.items()}
+    # (shape_library 0 left out: the hash of a scene made before the library existed stays the same)
+    params_dict = {k: (list(v) if isinstance(v, tuple) else v) for k, v in p.__dict__.items()
+                   if k != "shape_library" or v}
     spec = {
         # the paper's metadata keys
         "shape_type": p.shape,
