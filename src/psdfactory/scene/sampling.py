@@ -151,7 +151,7 @@ def sample_scene(p: SampleParams) -> tuple[dict, dict[str, np.ndarray]]:
 
     shape_params = ShapeParams.for_family(p.shape, p.shape_params)
     library = None
-    if p.shape_library:  # one per dataset and seed: a test split's shapes are not the training split's
+    if p.shape_library:  # one per dataset and seed: a test dataset's shapes are not a training dataset's
         library = shape_library(p.shape, shape_params, p.shape_library,
                                 (p.seed, name_key(p.dataset), STREAMS["shape_library"]))
     particles = make_particles(p.shape, sizes, rng_for(entropy, "shape"), shape_params, library)

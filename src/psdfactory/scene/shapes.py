@@ -271,6 +271,8 @@ def shape_library(family: str, params: ShapeParams, size: int, entropy: tuple[in
     rng = np.random.default_rng(list(entropy))
     shapes = convex_meshes([HULL_POINTS[family](rng, params) for _ in range(size)])
     dims, sieve = box_and_sieve([v for v, _ in shapes])
+    for arr in (dims, sieve, *(x for shape in shapes for x in shape)):
+        arr.flags.writeable = False  # shared by every scene of the process
     return ShapeLibrary(tuple(shapes), dims, sieve)
 
 
