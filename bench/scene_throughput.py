@@ -150,13 +150,16 @@ def describe(rev: str | None) -> str:
 
 
 def library_cost(config: str, size: int) -> float:
-    """Seconds of CPU to make and measure a shape library of `size` shapes of the config's train set."""
+    """Seconds of CPU to make and measure the config's train set's shape library of `size` shapes."""
+    from psdfactory import config as psd_config
     from psdfactory.config import load_config
-    from psdfactory.scene.shapes import ShapeParams, shape_library
+    from psdfactory.scene.sampling import SampleParams, dataset_library
 
-    ds = load_config(config)["datasets"]["train"]
+    cfg = load_config(config)
+    cfg["datasets"]["train"]["shape_library"] = size
+    p = SampleParams.from_dict(psd_config.sample_params(cfg, "train", 0))
     c0 = time.process_time()
-    shape_library(ds["shape"], ShapeParams.for_family(ds["shape"], ds["shape_params"]), size, (0, 0, 9))
+    dataset_library(p)
     return time.process_time() - c0
 
 
@@ -277,14 +280,15 @@ def main() -> None:
         tmp = Path(tmp)
         new_tree = extract(a.against, tmp / "new-code") if a.against else REPO
         libs = a.shape_library or [None]
-        sides = [Side("after" if a.compare else "now", new_tree, a.workers, tmp / "new", libs[-1])]
-        print(f"{sides[0].name}: {describe(a.against)}")
         if len(libs) == 2:
             sides = [Side(f"library {k}", REPO, a.workers, tmp / f"lib{k}", k) for k in libs]
             print(f"both sides: {describe(None)}; shape_library {libs[0]} and {libs[1]}")
             print(f"building a library of {libs[1]} shapes takes {library_cost(a.config, libs[1]):.2f} s "
-                  "(once per worker process or batch job; included in the workflow's figures, in the "
-                  "first scene of each worker above)")
+                  "(once per worker process or batch job; included in the workflow's figures, and in the "
+                  "first scene of each worker below)")
+        else:
+            sides = [Side("after" if a.compare else "now", new_tree, a.workers, tmp / "new", libs[0])]
+            print(f"{sides[0].name}: {describe(a.against)}")
         if a.compare:
             sides.insert(0, Side("before", extract(a.compare, tmp / "old-code"), a.workers, tmp / "old"))
             print(f"before: {describe(a.compare)}")

@@ -16,7 +16,7 @@ from scipy.special import ndtr, ndtri
 
 from .. import PsdError, __version__
 from ..seeding import STREAMS, name_key, rng_for, scene_entropy, scene_id
-from .shapes import ShapeParams, make_particles, pack, shape_library
+from .shapes import ShapeLibrary, ShapeParams, make_particles, pack, shape_library
 
 
 @dataclass(frozen=True)
@@ -143,6 +143,15 @@ def draw_sizes(p: SampleParams, rng: np.random.Generator | None = None) -> tuple
     return n, mean, sigma, truncnormal_sizes(rng, n, mean, sigma, *p.size_bounds)
 
 
+def dataset_library(p: SampleParams) -> ShapeLibrary | None:
+    """The shapes the dataset's scenes draw from (None where each particle gets its own): one
+    library per seed and dataset, so a test dataset's shapes are not a training dataset's."""
+    if not p.shape_library:
+        return None
+    return shape_library(p.shape, ShapeParams.for_family(p.shape, p.shape_params), p.shape_library,
+                         (p.seed, name_key(p.dataset), STREAMS["shape_library"]))
+
+
 def sample_scene(p: SampleParams) -> tuple[dict, dict[str, np.ndarray]]:
     """The scene spec (paper metadata + provenance) and its packed particle meshes."""
     entropy = scene_entropy(p.seed, p.dataset, p.index)
@@ -150,11 +159,7 @@ def sample_scene(p: SampleParams) -> tuple[dict, dict[str, np.ndarray]]:
     n, mean, sigma, sizes = draw_sizes(p, rng)
 
     shape_params = ShapeParams.for_family(p.shape, p.shape_params)
-    library = None
-    if p.shape_library:  # one per dataset and seed: a test dataset's shapes are not a training dataset's
-        library = shape_library(p.shape, shape_params, p.shape_library,
-                                (p.seed, name_key(p.dataset), STREAMS["shape_library"]))
-    particles = make_particles(p.shape, sizes, rng_for(entropy, "shape"), shape_params, library)
+    particles = make_particles(p.shape, sizes, rng_for(entropy, "shape"), shape_params, dataset_library(p))
     geometry = pack(particles)
     xy = drop_positions(
         rng,
