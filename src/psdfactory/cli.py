@@ -12,6 +12,7 @@ from pathlib import Path
 
 from . import PsdError, __version__
 from .config import PREDICT_RUNTIMES, PREDICT_TILE_PX
+from .packs import IMAGE_FORMATS, PackSpec
 from .psd import GRAIN_WEIGHTINGS, SIZE_DEFINITIONS
 
 logger = logging.getLogger(__name__)
@@ -56,6 +57,14 @@ def cmd_show(a: argparse.Namespace) -> None:
         raise PsdError(f"--out {a.out}: must end in .png")
     out = contact_sheet(Path(a.results), a.dataset, Path(a.out), a.n)
     logger.info(f"wrote {out}")
+
+
+def cmd_pack(a: argparse.Namespace) -> None:
+    from .learn.shards import PackSpec, pack
+
+    spec = PackSpec(size=a.size, image_format=a.format, quality=a.quality, masks=not a.no_masks,
+                    shard_scenes=a.shard_scenes, seed=a.seed)
+    pack(Path(a.results), a.datasets, Path(a.out), spec, tuple(a.splits) if a.splits else None, jobs=a.jobs)
 
 
 def cmd_compare_backends(a: argparse.Namespace) -> None:
@@ -302,6 +311,7 @@ USER_COMMANDS = {
     "export": "ONNX and TorchScript copies of a model (int8 too), checked against PyTorch",
     "calibrate": "correct a model against reference samples (sieved or lab-measured d10/d50/d90) → a calibrated model",
     "show": "contact sheet of a dataset's scenes: images, masks and labels side by side",
+    "pack": "a dataset's scenes as WebDataset tar shards, for training on many GPUs or from object storage",
     "check-config": "validate a config file against the schema, without running anything",
 }
 # The steps of the workflow (rules/*.smk call them, most with --params), in the pipeline's order,
@@ -356,6 +366,11 @@ EXAMPLES = {
         "    --mm-per-px 0.288 --out calibrated.pt photos/   # sieved.csv: image,d10_mm,d50_mm,d90_mm",
         "psdfactory predict --model calibrated.pt --mm-per-px 0.288 new/   # then: corrected readings",
         "psdfactory export --model calibrated.pt --out-dir deploy/      # the ONNX export applies it too",
+    ],
+    "pack": [
+        "psdfactory pack --results results --datasets train --out packs/train224/   # 224 px JPEG, masks",
+        "psdfactory pack --datasets train train_cycles --size 299 --shard-scenes 5000 --jobs 8 \\",
+        "    --out packs/incv3/                            # both renderers mixed, for InceptionV3",
     ],
     "show": [
         "psdfactory show                                    # results/train → contact_sheet.png",
@@ -606,6 +621,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="contact_sheet.png", metavar="FILE",
                    help="the contact sheet, a .png file outside the scenes it shows")
     p.set_defaults(func=cmd_show)
+
+    p = user("pack", "Every scene of the chosen splits becomes one sample of a tar shard: its image resized to the "
+             "networks' input size (--size), its manifest row as JSON (targets, size definition, the scale at the "
+             "packed size) and, unless --no-masks, its instance mask at that size and its particles' sizes. The "
+             "scenes of all the datasets are mixed in a seeded order. The pack is written beside --out and "
+             "replaces it when every shard is done, index.json last (shards, scene counts, bytes, SHA-256). Read "
+             "it with psdfactory.learn.shards.ShardScenes (each DDP rank and loader worker its own shards, the "
+             "same number of samples on every rank) or any WebDataset reader (docs/scale.md).")
+    p.add_argument("--results", default="results", metavar="DIR", help="the results root of a run (its manifests)")
+    p.add_argument("--datasets", nargs="+", default=["train"], metavar="NAME",
+                   help="the datasets to pack together (of the config's datasets; the labels must be of one size "
+                        "definition)")
+    p.add_argument("--splits", nargs="+", metavar="SPLIT",
+                   help="the splits to pack, each into shards of its own (default: every split of the manifests)")
+    p.add_argument("--size", type=positive_int, default=PackSpec.size, metavar="PX",
+                   help="images and masks resized to PX x PX (the networks' input size: 224, 299 for InceptionV3)")
+    p.add_argument("--format", choices=IMAGE_FORMATS, default=PackSpec.image_format,
+                   help="the images' format: jpg (small, lossy) or png (lossless)")
+    p.add_argument("--quality", type=positive_int, default=PackSpec.quality, metavar="Q", help="JPEG quality (1-100)")
+    p.add_argument("--no-masks", action="store_true",
+                   help="leave out the instance masks and particle tables (what only the CNNs' d-value task needs)")
+    p.add_argument("--shard-scenes", type=positive_int, default=PackSpec.shard_scenes, metavar="N",
+                   help="scenes per shard at most (shards of a split are within one scene of each other)")
+    p.add_argument("--seed", type=int, default=PackSpec.seed, metavar="N",
+                   help="the seed of the order scenes are mixed in")
+    p.add_argument("--jobs", type=positive_int, default=1, metavar="N", help="scenes encoded in parallel processes")
+    p.add_argument("--out", required=True, metavar="DIR", help="the pack's folder (replaced as a whole)")
+    p.set_defaults(func=cmd_pack)
 
     p = user("check-config", "It reads the file as a run does (the schema: every key, its type and range; the "
              "datasets; train.architectures) and prints one line: OK with the counts of datasets and scenes, or "

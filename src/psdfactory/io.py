@@ -86,6 +86,35 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+@contextmanager
+def atomic_dir(path: str | os.PathLike, what: str = "--out-dir", suffix: str = ".tmp") -> Iterator[Path]:
+    """Yield a new hidden folder beside `path` to fill; it replaces `path` (and whatever was there)
+    only if the block succeeds, so the folder never holds a mix of two writes or half of one. A
+    failed block removes the new folder and leaves `path` as it was. `what` names the folder in
+    errors (the option that gave it)."""
+    import shutil
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise PsdError(f"{what} {path} is a file; give a folder")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent))
+        stage.chmod(0o777 & ~current_umask())
+    except OSError as e:
+        raise PsdError(f"{what} {path}: cannot write in {path.parent} ({e.strerror})") from None
+    try:
+        yield stage
+        old = path.with_name(stage.name + ".old")
+        if path.exists():
+            path.rename(old)
+        stage.rename(path)
+        shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+
+
 @functools.lru_cache(maxsize=4096)
 def _stale_temps(folder: str) -> dict[str, list[str]]:
     """atomic_path's temporary files in `folder` when this process first writes there, by the

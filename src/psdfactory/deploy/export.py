@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from .. import PsdError
-from ..io import atomic_path, write_json
+from ..io import atomic_dir, atomic_path, write_json
 
 logger = logging.getLogger(__name__)
 
@@ -27,14 +27,7 @@ def export(model_path: Path, out_dir: Path, int8_results: Path | None = None, da
     hidden folder beside `out_dir`, and that folder replaces `out_dir` only when all of them
     are made and checked. A failed export leaves `out_dir` as it was; an export folder never
     holds parts of two models."""
-    import shutil
-    import tempfile
-
-    from ..io import current_umask
-
     out_dir, model_path = Path(out_dir), Path(model_path)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise PsdError(f"--out-dir {out_dir} is a file; give a folder")
     if model_path.resolve().is_relative_to(out_dir.resolve()):
         raise PsdError(f"--out-dir {out_dir} holds the model {model_path}, which the export would replace; "
                        "give another folder")
@@ -43,22 +36,8 @@ def export(model_path: Path, out_dir: Path, int8_results: Path | None = None, da
         if not shards.is_dir():
             raise PsdError(f"--int8 {int8_results}: no manifest of dataset {dataset!r} at {shards} to calibrate on "
                            "(give the results root of a run, and --dataset)")
-    try:
-        out_dir.parent.mkdir(parents=True, exist_ok=True)
-        stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".export", dir=out_dir.parent))
-        stage.chmod(0o777 & ~current_umask())
-    except OSError as e:
-        raise PsdError(f"--out-dir {out_dir}: cannot write in {out_dir.parent} ({e.strerror})") from None
-    try:
+    with atomic_dir(out_dir, "--out-dir", ".export") as stage:
         report = _export_into(model_path, stage, int8_results, dataset, max_r2_change)
-        old = out_dir.with_name(stage.name + ".old")
-        if out_dir.exists():
-            out_dir.rename(old)
-        stage.rename(out_dir)
-        shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
     for part in report.values():  # the paths the report names: where the files are now
         if isinstance(part, dict) and "path" in part:
             part["path"] = str(out_dir / Path(part["path"]).name)

@@ -1,0 +1,296 @@
+"""Training data as WebDataset tar shards (the format: `psdfactory.packs`): the packer from a
+results root's manifests, and the dataset that reads the shards back (each rank and loader worker
+its own shards, reshuffled each epoch).
+
+Any WebDataset reader takes the shards (``webdataset.WebDataset("train-{000000..000009}.tar")``);
+`ShardScenes` is the one training needs: exactly as many samples on every rank of a DDP job
+(`torch.distributed` or the ``RANK``/``WORLD_SIZE`` variables ``torchrun`` sets), no sample twice in
+an epoch, another shard order and shuffle each epoch (`set_epoch`), and shards read from a local
+folder or any URL WebDataset opens (``pipe:aws s3 cp s3://bucket/pack/{name} -``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import logging
+import random
+from dataclasses import asdict
+from itertools import islice
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .. import PsdError, __version__
+from ..io import atomic_dir, read_png, write_json
+from ..manifest import PARTICLE_READ_COLUMNS, read_particles
+from ..packs import (
+    FORMAT,
+    FORMAT_VERSION,
+    INDEX,
+    SPLIT_NAME,
+    PackSpec,
+    epoch_order,
+    pack_order,
+    read_index,
+    shard_name,
+    shard_plan,
+    shard_sizes,
+)
+from ..psd import TARGETS
+from ..seeding import SPLIT_ORDER
+from .data import label_definition, manifest_rows, to_input
+
+logger = logging.getLogger(__name__)
+
+FIELDS = ("image", "targets", "mask", "particles", "meta")  # what ShardScenes can yield per scene
+
+
+def _encode_image(array: np.ndarray, fmt: str, quality: int) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    if fmt == "jpg":
+        Image.fromarray(array).save(buf, format="JPEG", quality=quality)
+    else:
+        Image.fromarray(array).save(buf, format="PNG", compress_level=6)
+    return buf.getvalue()
+
+
+def resize_mask(mask: np.ndarray, size: int) -> np.ndarray:
+    """A 16-bit instance mask at size x size px, nearest neighbour (ids stay ids)."""
+    if mask.shape == (size, size):
+        return mask
+    rows = (np.arange(size) + 0.5) * mask.shape[0] / size
+    cols = (np.arange(size) + 0.5) * mask.shape[1] / size
+    return mask[np.minimum(rows.astype(int), mask.shape[0] - 1)][:, np.minimum(cols.astype(int), mask.shape[1] - 1)]
+
+
+def scene_sample(results_root: Path, row: dict, particles: dict | None, spec: PackSpec) -> dict:
+    """One scene as a WebDataset sample: {"__key__": scene id, extension: bytes}."""
+    image = to_input(read_png(results_root / row["image_path"]), spec.size).permute(1, 2, 0).numpy()
+    meta = {k: v for k, v in row.items() if not k.endswith("_path")}
+    meta["packed_size"] = spec.size
+    meta["packed_mm_per_px"] = float(row["mm_per_px"]) * float(row["resolution"]) / spec.size
+    sample = {"__key__": row["scene_id"], spec.image_format: _encode_image(image, spec.image_format, spec.quality)}
+    if spec.masks:
+        from PIL import Image
+
+        mask = resize_mask(read_png(results_root / row["mask_path"]), spec.size)
+        buf = io.BytesIO()
+        Image.fromarray(mask.astype(np.uint16)).save(buf, format="PNG")
+        sample["mask.png"] = buf.getvalue()
+        table = np.stack([np.asarray(particles[c], dtype=np.float64) for c in PARTICLE_READ_COLUMNS], axis=1) \
+            if particles is not None else np.zeros((0, len(PARTICLE_READ_COLUMNS)))
+        buf = io.BytesIO()
+        np.save(buf, table, allow_pickle=False)
+        sample["particles.npy"] = buf.getvalue()
+        meta["particle_columns"] = list(PARTICLE_READ_COLUMNS)
+    sample["json"] = json.dumps(meta, default=float).encode()
+    return sample
+
+
+def _sample_job(args: tuple) -> dict:
+    results_root, row, particles, spec = args
+    return scene_sample(results_root, row, particles, spec)
+
+
+def _write_split(results_root: Path, rows: list[dict], particles: dict, split: str, out: Path, spec: PackSpec,
+                 jobs: int, bar) -> list[dict]:
+    """The split's shards in `out`; per shard its name, scene count, bytes and SHA-256."""
+    import webdataset as wds
+
+    shards = []
+    work = ((results_root, r, particles.get(r["scene_id"]) if spec.masks else None, spec) for r in rows)
+    pool = None
+    if jobs > 1:
+        import multiprocessing
+
+        pool = multiprocessing.get_context("spawn").Pool(jobs)
+        samples = pool.imap(_sample_job, work, chunksize=4)
+    else:
+        samples = map(_sample_job, work)
+    try:
+        for k, n in enumerate(shard_sizes(len(rows), spec.shard_scenes)):
+            name = shard_name(split, k)
+            with open(out / name, "wb") as f, wds.TarWriter(f, mtime=0.0, mode=0o644) as tar:
+                for sample in islice(samples, n):
+                    tar.write(sample)
+                    bar.update(1)
+            data = (out / name).read_bytes()
+            shards.append({"name": name, "scenes": n, "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()})
+    finally:
+        if pool is not None:
+            pool.terminate()
+    return shards
+
+
+def pack(results_root: Path, datasets: list[str] | tuple[str, ...], out_dir: Path, spec: PackSpec,
+         splits: tuple[str, ...] | None = None, jobs: int = 1) -> dict:
+    """Pack the scenes of `splits` (default: every split of the manifests) of `datasets` (one
+    results root's) into WebDataset shards in `out_dir`, replaced as a whole when every shard is
+    written; returns the index."""
+    from tqdm import tqdm
+
+    if spec.problems():
+        raise PsdError("; ".join(spec.problems()))
+    results_root, out_dir = Path(results_root), Path(out_dir)
+    if any(out_dir.resolve().is_relative_to((results_root / d).resolve()) for d in datasets):
+        raise PsdError(f"--out {out_dir} is inside a dataset it packs; write the pack elsewhere")
+    by_split: dict[str, list[dict]] = {}
+    for ds in datasets:
+        for r in manifest_rows(results_root, ds, tuple(splits) if splits else None):
+            by_split.setdefault(r["split"], []).append(r)
+    names = [s for s in SPLIT_ORDER if s in by_split] + sorted(s for s in by_split if s not in SPLIT_ORDER)
+    bad = [s for s in names if not SPLIT_NAME.match(s)]
+    if bad:
+        raise PsdError(f"splits {bad}: a split's shards are named after it, so its name may hold letters, digits "
+                       "and _ only; rename it in datasets.<name>.split")
+    rows = [r for s in names for r in by_split[s]]
+    if not rows:
+        raise PsdError(f"{', '.join(datasets)}: no scenes in the splits {', '.join(splits or ())} to pack")
+    definition = label_definition(rows)
+    particles = {}
+    if spec.masks:
+        for ds in datasets:
+            particles.update(read_particles(results_root, ds))
+    counts = ", ".join(f"{s} {len(by_split[s])}" for s in names)
+    logger.info(f"packing {len(rows)} scenes of {', '.join(datasets)} ({counts}) "
+                f"at {spec.size} px {spec.image_format} into shards of {spec.shard_scenes} in {out_dir}")
+    index = {"format": FORMAT, "version": FORMAT_VERSION, "psdfactory_version": __version__,
+             "datasets": list(datasets), **definition, **asdict(spec), "splits": {}}
+    with atomic_dir(out_dir, "--out", ".pack") as stage, \
+            tqdm(total=len(rows), desc="pack", unit="scene", mininterval=2.0,
+                 disable=not logger.isEnabledFor(logging.INFO)) as bar:
+        for s in names:
+            shards = _write_split(results_root, pack_order(by_split[s], spec.seed), particles, s, stage, spec,
+                                  jobs, bar)
+            index["splits"][s] = {"scenes": len(by_split[s]), "shards": shards}
+        write_json(stage / INDEX, index)
+    total = sum(sh["bytes"] for v in index["splits"].values() for sh in v["shards"])
+    logger.info(f"wrote {out_dir}: {len(rows)} scenes, {total / 1e6:.1f} MB ({total / len(rows) / 1e3:.1f} kB a scene)")
+    return index
+
+
+class ShardScenes(torch.utils.data.IterableDataset):
+    """One split of a pack, scene by scene: the `fields` of each (image: uint8 3 x size x size;
+    targets: float32 d10/d50/d90 in mm; mask: int32 size x size; particles: float64 n x 3; meta:
+    the manifest row), as a tuple in that order.
+
+    Each epoch the split's shards are put in an order drawn from (seed, epoch), dealt to the ranks
+    and then to each rank's loader workers (`num_workers` must be the DataLoader's), and read
+    through a shuffle buffer of `shuffle_buffer` scenes. `len()` is the samples one rank yields an
+    epoch, the same on every rank. `url` turns a shard's name into what WebDataset opens (default:
+    the file in the index's folder)."""
+
+    def __init__(self, pack_dir: Path | str, split: str = "train", fields: tuple[str, ...] = ("image", "targets"),
+                 shuffle_buffer: int = 1000, seed: int = 0, num_workers: int = 0, url: str | None = None,
+                 world: tuple[int, int] | None = None):
+        super().__init__()
+        self.dir = Path(pack_dir)
+        self.index = read_index(self.dir)
+        bad = [f for f in fields if f not in FIELDS]
+        if bad or not fields:
+            raise PsdError(f"fields {bad or '(none)'}: choose from {', '.join(FIELDS)}")
+        if not self.index["masks"] and {"mask", "particles"} & set(fields):
+            raise PsdError(f"{self.dir} was packed without masks (--no-masks): it has no mask or particles")
+        if split not in self.index["splits"]:
+            has = ", ".join(self.index["splits"]) or "none"
+            raise PsdError(f"{self.dir} holds no {split!r} scenes (it has: {has})")
+        self.split, self.fields, self.seed = split, tuple(fields), int(seed)
+        self.shards = self.index["splits"][split]["shards"]
+        self.shuffle_buffer, self.num_workers, self.url = int(shuffle_buffer), int(num_workers), url
+        self.world = world  # (rank, world size); default: what torch.distributed or RANK/WORLD_SIZE say
+        self.epoch = 0
+        rank, size = self._rank()
+        if len(self.shards) < size * max(self.num_workers, 1):
+            raise PsdError(f"{self.dir}: {len(self.shards)} {split} shards for {size} ranks x "
+                           f"{max(self.num_workers, 1)} loader workers; each needs a shard of its own: pack with a "
+                           "smaller --shard-scenes, or use fewer workers")
+
+    def _rank(self) -> tuple[int, int]:
+        if self.world is not None:
+            return self.world
+        from webdataset.utils import pytorch_worker_info
+
+        rank, size, _, _ = pytorch_worker_info()
+        return rank, size
+
+    def set_epoch(self, epoch: int) -> None:
+        """Another shard order and shuffle (as DistributedSampler.set_epoch); call before each epoch."""
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        rank, size = self._rank()
+        counts = [s["scenes"] for s in epoch_order(self.shards, self.seed, self.epoch)]
+        workers = max(self.num_workers, 1)
+        return sum(shard_plan(counts, rank, size, w, workers)[1] for w in range(workers))
+
+    def _open(self, name: str) -> str:
+        if self.url is not None:
+            return self.url.format(name=name)
+        return str(self.dir / name)
+
+    def _check_local(self, shard: dict) -> None:
+        path = self.dir / shard["name"]
+        if self.url is None and (not path.is_file() or path.stat().st_size != shard["bytes"]):
+            found = f"{path.stat().st_size} bytes" if path.is_file() else "missing"
+            raise PsdError(f"shard {path} is {found}, the pack's index says {shard['bytes']} bytes: the copy is "
+                           "incomplete or another pack's; copy or pack it again")
+
+    def __iter__(self):
+        import webdataset as wds
+
+        rank, size = self._rank()
+        info = torch.utils.data.get_worker_info()
+        worker, workers = (info.id, info.num_workers) if info is not None else (0, 1)
+        if workers != max(self.num_workers, 1):
+            raise PsdError(f"ShardScenes(num_workers={self.num_workers}) read by a DataLoader with {workers} "
+                           "workers: give the DataLoader's num_workers")
+        order = epoch_order(self.shards, self.seed, self.epoch)
+        mine, n = shard_plan([s["scenes"] for s in order], rank, size, worker, workers)
+        for i in mine:
+            self._check_local(order[i])
+        sources = [{"url": self._open(order[i]["name"])} for i in mine]
+
+        def damaged(exn: Exception) -> bool:
+            where = exn.args[-1] if exn.args else "a shard"
+            raise PsdError(f"{where}: not a readable shard ({exn.args[0] if exn.args else exn}); copy or pack it "
+                           "again") from None
+
+        samples = wds.tarfile_to_samples(handler=damaged)(iter(sources))
+        rng = random.Random(f"{self.seed}:{self.epoch}:{rank}:{worker}")
+        samples = wds.shuffle(self.shuffle_buffer, initial=min(self.shuffle_buffer, 100), rng=rng)(samples) \
+            if self.shuffle_buffer > 1 else samples
+        for sample in islice(samples, n):
+            yield decode(sample, self.fields, self.index["image_format"])
+
+
+def decode(sample: dict, fields: tuple[str, ...], image_format: str) -> tuple:
+    """A WebDataset sample of a pack as the `fields` (see ShardScenes)."""
+    from PIL import Image
+
+    def member(ext: str) -> bytes:
+        if ext not in sample:
+            raise PsdError(f"{sample.get('__url__', 'a shard')}: scene {sample.get('__key__')} has no .{ext} (the "
+                           "shard is truncated or not of this pack); copy or pack it again")
+        return sample[ext]
+
+    out = []
+    meta = json.loads(member("json"))
+    for f in fields:
+        if f == "image":
+            with Image.open(io.BytesIO(member(image_format))) as im:
+                out.append(torch.from_numpy(np.array(im.convert("RGB"))).permute(2, 0, 1).contiguous())
+        elif f == "targets":
+            out.append(torch.tensor([meta[t] for t in TARGETS], dtype=torch.float32))
+        elif f == "mask":
+            with Image.open(io.BytesIO(member("mask.png"))) as im:
+                out.append(torch.from_numpy(np.asarray(im).astype(np.int32)))
+        elif f == "particles":
+            out.append(np.load(io.BytesIO(member("particles.npy")), allow_pickle=False))
+        else:
+            out.append(meta)
+    return tuple(out)

@@ -1,0 +1,118 @@
+"""The pack format: a dataset's scenes as WebDataset tar shards for training (written by
+``psdfactory pack``, `learn.shards`), shared by the packer and its readers. Light to import (the
+command line builds its options from it).
+
+A pack is a folder:
+
+- ``<split>-NNNNNN.tar``: WebDataset shards of at most ``shard_scenes`` scenes, within one scene of
+  each other in size, the scenes of every packed dataset mixed in a seeded order (`pack_order`). A
+  scene is the files ``<scene_id>.jpg`` (or ``.png``: the image at ``size`` x ``size`` px, the
+  networks' input size), ``<scene_id>.json`` (its manifest row: the targets, the size definition and
+  weighting, and ``packed_mm_per_px``, the scale at the packed size), and with masks
+  ``<scene_id>.mask.png`` (the 16-bit instance mask at the packed size, nearest neighbour: mask id k
+  is particle k - 1) and ``<scene_id>.particles.npy`` (`manifest.PARTICLE_READ_COLUMNS` per particle, float64;
+  the JSON's ``particle_columns`` names them).
+- ``index.json``: what was packed and how, and per split its shards with their scene counts, bytes
+  and SHA-256. Written last: the pack is complete when it is there (the whole folder is written
+  beside the old one and swapped in at the end).
+"""
+
+from __future__ import annotations
+
+import random
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from . import PsdError
+from .config import DESIGN_INPUT_SIZE
+
+FORMAT = "psdfactory-shards"
+FORMAT_VERSION = 1
+INDEX = "index.json"
+IMAGE_FORMATS = ("jpg", "png")
+SPLIT_NAME = re.compile(r"^[A-Za-z0-9_]+$")  # a split's shards are named after it
+
+
+@dataclass(frozen=True)
+class PackSpec:
+    """How a pack is written (recorded in its index)."""
+
+    size: int = DESIGN_INPUT_SIZE  # images (and masks) resized to size x size px
+    image_format: str = "jpg"  # jpg | png (lossless)
+    quality: int = 95  # JPEG quality
+    masks: bool = True  # also the instance masks and particle tables (the instance estimator, the size task)
+    shard_scenes: int = 10_000  # scenes per shard at most
+    seed: int = 0  # the order scenes are mixed in
+
+    def problems(self) -> list[str]:
+        out = []
+        if not 32 <= self.size <= 4096:
+            out.append(f"--size {self.size}: give the networks' input size in px, 32 to 4096")
+        if self.image_format not in IMAGE_FORMATS:
+            out.append(f"--format {self.image_format!r}: one of {', '.join(IMAGE_FORMATS)}")
+        if not 1 <= self.quality <= 100:
+            out.append(f"--quality {self.quality}: JPEG quality, 1 to 100")
+        if self.shard_scenes < 1:
+            out.append(f"--shard-scenes {self.shard_scenes}: at least 1")
+        return out
+
+
+def shard_name(split: str, k: int) -> str:
+    return f"{split}-{k:06d}.tar"
+
+
+def shard_sizes(n: int, most: int) -> list[int]:
+    """Scenes per shard for `n` scenes, at most `most` a shard: as few shards as that allows, their
+    sizes within one of each other (a small last shard would make every rank's loader worker that
+    reads it stop early: `shard_plan`)."""
+    k = -(-n // most)
+    return [n // k + (i < n % k) for i in range(k)] if n else []
+
+
+def pack_order(rows: list[dict], seed: int) -> list[dict]:
+    """The scenes of a split in the order they are packed: a seeded permutation, so that every
+    shard holds a mix of the packed datasets and of the whole size range."""
+    import numpy as np
+
+    order = np.random.default_rng([int(seed), 0x5EED]).permutation(len(rows))
+    return [rows[i] for i in order]
+
+
+def read_index(path: Path) -> dict:
+    """A pack's index.json (`path`: the file or the pack's folder), checked."""
+    from .io import read_json
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / INDEX
+    if not path.is_file():
+        raise PsdError(f"no pack at {path.parent}: {INDEX} is missing (an interrupted pack leaves none; run "
+                       "psdfactory pack again)")
+    index = read_json(path)
+    if not isinstance(index, dict) or index.get("format") != FORMAT:
+        raise PsdError(f"{path} is not the index of a psdfactory pack")
+    if index.get("version") != FORMAT_VERSION:
+        raise PsdError(f"{path}: pack format version {index.get('version')}, this psdfactory reads {FORMAT_VERSION}; "
+                       "pack the dataset again")
+    return index
+
+
+def epoch_order(shards: list[dict], seed: int, epoch: int) -> list[dict]:
+    """An epoch's order of a split's shards: the same on every rank and worker (drawn from the
+    seed and the epoch alone), another each epoch."""
+    order = list(shards)
+    random.Random(f"{int(seed)}:{int(epoch)}").shuffle(order)
+    return order
+
+
+def shard_plan(counts: list[int], rank: int, world: int, worker: int, workers: int) -> tuple[list[int], int]:
+    """Which of an epoch's shards (their scene `counts`, in the epoch's order) one loader worker of
+    one rank reads, and how many of their scenes it yields: the least any rank's same worker has,
+    so every rank yields the same number of samples (DDP steps in lockstep) and none twice."""
+    shards = list(range(len(counts)))
+
+    def share(r: int) -> int:
+        return sum(counts[i] for i in shards[r::world][worker::workers])
+
+    return shards[rank::world][worker::workers], min(share(r) for r in range(world))
