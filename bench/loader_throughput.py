@@ -8,9 +8,9 @@ input size, for each number of loader workers, from
 - **pack**: the pack's tar shards (`learn.shards.ShardScenes`: JPEG at input size, read in order,
   through a shuffle buffer).
 
-Each pass reads the train split once (batches of --batch), timed from its first batch on (the
-workers' start is paid once a job); the figure is the median of --repeats passes, the two sources
-interleaved pass by pass so they see the same load. The pack is written to a temporary folder
+A run reads the train split --epochs times (batches of --batch), each pass timed from its first
+batch on (the workers' start is paid once a job); the figure is the median of --repeats runs, the
+two sources interleaved run by run so they see the same load. The pack is written to a temporary folder
 (kept with --keep).
 
     .venv/bin/python bench/loader_throughput.py --results results --datasets train
@@ -41,14 +41,20 @@ from psdfactory.packs import PackSpec
 REPO = Path(__file__).resolve().parents[1]
 
 
-def one_pass(dataset, workers: int, batch: int) -> tuple[int, float]:
-    """(images, seconds) of one pass over `dataset` through a DataLoader with `workers` workers,
-    counted from the first batch on (the workers' start is paid once a job, not per image)."""
-    loader = iter(torch.utils.data.DataLoader(dataset, batch_size=batch, num_workers=workers, shuffle=False))
-    next(loader)
-    t0 = time.perf_counter()
-    n = sum(len(x) for x, _ in loader)
-    return n, time.perf_counter() - t0
+def passes(dataset, workers: int, batch: int, epochs: int) -> float:
+    """Images per second over `epochs` passes over `dataset` through a DataLoader with `workers`
+    workers, each pass counted from its first batch on (the workers' start is paid once a job, not
+    per image)."""
+    n, seconds = 0, 0.0
+    for epoch in range(epochs):
+        if hasattr(dataset, "set_epoch"):
+            dataset.set_epoch(epoch)
+        loader = iter(torch.utils.data.DataLoader(dataset, batch_size=batch, num_workers=workers, shuffle=False))
+        next(loader)
+        t0 = time.perf_counter()
+        n += sum(len(x) for x, _ in loader)
+        seconds += time.perf_counter() - t0
+    return n / seconds
 
 
 def main() -> None:
@@ -58,7 +64,8 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=PackSpec.size, help="the networks' input size (px)")
     ap.add_argument("--workers", type=int, nargs="+", default=[0, 1, 2], help="DataLoader workers to try")
     ap.add_argument("--batch", type=int, default=32)
-    ap.add_argument("--repeats", type=int, default=3, help="passes per source and worker count (median)")
+    ap.add_argument("--repeats", type=int, default=3, help="runs per source and worker count (their median)")
+    ap.add_argument("--epochs", type=int, default=4, help="passes over the train split a run")
     ap.add_argument("--jobs", type=int, default=1, help="pack's --jobs")
     ap.add_argument("--keep", type=Path, help="write the pack here and keep it (default: a temporary folder)")
     ap.add_argument("--out", type=Path, help="also write the figures as JSON")
@@ -91,10 +98,10 @@ def main() -> None:
         pack(a.results, a.datasets, wpack, PackSpec(size=a.size, shard_scenes=shard_scenes), splits=("train",))
         times: dict[str, list[float]] = {"folders": [], "pack": []}
         for _ in range(a.repeats):
-            n, s = one_pass(SceneImages(a.results, rows, a.size, cache=False), workers, a.batch)
-            times["folders"].append(n / s)
-            n2, s2 = one_pass(ShardScenes(wpack, "train", num_workers=workers, shuffle_buffer=256), workers, a.batch)
-            times["pack"].append(n2 / s2)
+            times["folders"].append(passes(SceneImages(a.results, rows, a.size, cache=False), workers, a.batch,
+                                           a.epochs))
+            times["pack"].append(passes(ShardScenes(wpack, "train", num_workers=workers, shuffle_buffer=256), workers,
+                                        a.batch, a.epochs))
         med = {k: statistics.median(v) for k, v in times.items()}
         figures["loader"][workers] = {k: {"median": med[k], "runs": v} for k, v in times.items()}
         print(f"{workers} loader worker{'s' if workers != 1 else ''}: folders {med['folders']:.0f} images/s, "
