@@ -1,6 +1,6 @@
-"""The bench/ scripts that move a run to a GPU node: a dataset copy at the CNNs' input size
-(shrink_results.py) and a recipe changed for the runs of seed_spread.py (--set), written as a
-config that needs no Snakemake (--write-config)."""
+"""The bench/ scripts' own logic: a dataset copy at the CNNs' input size (shrink_results.py), a
+recipe changed for the runs of seed_spread.py (--set) written as a config that needs no Snakemake
+(--write-config), and the outline comparison of mask_fit.py."""
 
 import importlib.util
 import json
@@ -143,3 +143,20 @@ def test_photo_maps_shows_the_photo_and_each_map_of_an_instance_model(tmp_path):
         photo_maps.main(["--model", str(model), "--mm-per-px", "1.0", str(tmp_path / "bed.png"),
                          "--out", str(tmp_path)])
     assert (tmp_path / "bed.png").read_bytes() == before
+
+
+def test_mask_fit_measures_how_much_fatter_the_found_grains_are():
+    """bench/mask_fit.py: found grains one px fatter on every side than the reference's squares
+    read an area ratio of 12²/10², and the ring's pixels as lying on the reference's background."""
+    fit = bench_module("mask_fit").fit
+    ref = np.zeros((40, 40), np.int64)
+    ref[5:15, 5:15], ref[20:30, 22:32] = 1, 2
+    found = np.zeros_like(ref)
+    found[4:16, 4:16], found[19:31, 21:33] = 7, 3
+    r = fit(found, ref, 0.5)
+    assert r["matched"] == 2
+    assert r["area_ratio"] == pytest.approx(1.44)
+    assert r["minor_ratio"] == pytest.approx(1.2, abs=0.02)
+    assert r["on_ref_background"] == pytest.approx(44 / 144) and r["on_other_grain"] == 0
+    assert r["ref_background"] == pytest.approx(1 - 200 / 1600)
+    assert r["found_background"] == pytest.approx(1 - 288 / 1600)

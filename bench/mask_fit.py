@@ -1,0 +1,142 @@
+#!/usr/bin/env python
+"""How the grains an instance model finds sit on the reference grains' outlines: whether found
+grains are fatter or thinner than the reference's, and where the difference lies.
+
+For each image the model's instance mask (`psdfactory predict --masks`, as a user runs it) is
+matched to the reference mask at IoU >= 0.5 (the photo scorer's border rule), and the script
+prints, over the matched grains: the median ratio of found to reference area and of ellipse minor
+axis (the photo sets' size definition), the share of the found grains' pixels that the reference
+calls background (gaps, shadows, table) or another grain, and the share of the image each mask
+leaves as background.
+
+Photo sets (a folder with labels.csv and <stem>_mask.png, as data/photos/real) are read at their
+labels.csv scale, with --auto-scale as the default config's photo set reads them; synthetic test
+scenes (--results/--datasets, the manifests' test split) at their own scale against their true
+masks.
+
+    .venv/bin/python bench/mask_fit.py --model results/models/instances/model.pt \
+        --photos data/photos/real --auto-scale --results results --datasets train train_cycles
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def predict_masks(model: Path, images: list[Path], out: Path, mm_per_px: float | None, auto_scale: bool) -> None:
+    cmd = [sys.executable, "-m", "psdfactory.cli", "-q", "predict", "--model", str(model), "--masks", str(out)]
+    if mm_per_px is not None:
+        cmd += ["--mm-per-px", str(mm_per_px)]
+    if auto_scale:
+        cmd += ["--auto-scale"]
+    subprocess.run(cmd + [str(p) for p in images], check=True, stdout=subprocess.DEVNULL)
+
+
+def fit(found: np.ndarray, ref: np.ndarray, mm_per_px: float) -> dict:
+    """The figures of one image (see the module's docstring)."""
+    from psdfactory.learn.instances.measure import measure_instances
+    from psdfactory.learn.instances.scoring import match_off_border
+
+    bm = match_off_border(found, ref, 0.5)
+    fa = np.bincount(found.ravel(), minlength=int(found.max()) + 1)
+    ra = np.bincount(ref.ravel(), minlength=int(ref.max()) + 1)
+    mf, mr = measure_instances(found, mm_per_px), measure_instances(ref, mm_per_px)
+    minor_f = dict(zip(mf.ids.tolist(), mf.ellipse_minor_mm, strict=True))
+    minor_r = dict(zip(mr.ids.tolist(), mr.ellipse_minor_mm, strict=True))
+    matched = np.zeros(int(found.max()) + 1, bool)
+    matched[bm.pred_ids] = True
+    owner = np.zeros(int(found.max()) + 1, np.int64)  # found id -> its reference grain
+    owner[bm.pred_ids] = bm.true_ids
+    sel = matched[found]
+    under = ref[sel]
+    return {
+        "matched": int(len(bm.pred_ids)),
+        "area_ratio": float(np.median(fa[bm.pred_ids] / ra[bm.true_ids])) if len(bm.pred_ids) else np.nan,
+        "minor_ratio": float(np.median([minor_f[p] / minor_r[t] for p, t in zip(bm.pred_ids.tolist(),
+                                                                                bm.true_ids.tolist(), strict=True)]))
+        if len(bm.pred_ids) else np.nan,
+        "on_ref_background": float((under == 0).mean()) if sel.any() else np.nan,
+        "on_other_grain": float(((under != 0) & (under != owner[found[sel]])).mean()) if sel.any() else np.nan,
+        "ref_background": float((ref == 0).mean()),
+        "found_background": float((found == 0).mean()),
+    }
+
+
+def photo_set(model: Path, folder: Path, auto_scale: bool, work: Path) -> list[tuple[str, dict]]:
+    from psdfactory.deploy.photos import read_mask
+    from psdfactory.io import read_png
+
+    with open(folder / "labels.csv", newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    out = []
+    for r in rows:
+        image = folder / r["image"]
+        ref_path = image.with_name(f"{image.stem}_mask.png")
+        if not ref_path.is_file():
+            continue
+        predict_masks(model, [image], work, float(r["mm_per_px"]), auto_scale)
+        found = read_png(work / f"{image.stem}.png").astype(np.int64)
+        out.append((r["image"], fit(found, read_mask(ref_path, found.shape), float(r["mm_per_px"]))))
+    return out
+
+
+def scenes(model: Path, results: Path, dataset: str, split: str, work: Path) -> list[tuple[str, dict]]:
+    from psdfactory.io import read_png
+    from psdfactory.learn.data import manifest_rows
+
+    rows = manifest_rows(results, dataset, (split,))
+    inputs = work / f"in-{dataset}"
+    inputs.mkdir()
+    for r in rows:  # every scene's image is image.png: give each its scene id
+        shutil.copy(results / r["image_path"], inputs / f"{r['scene_id']}.png")
+    predict_masks(model, [inputs], work / dataset, None, False)
+    return [(r["scene_id"], fit(read_png(work / dataset / f"{r['scene_id']}.png").astype(np.int64),
+                                read_png(results / r["mask_path"]).astype(np.int64), r["mm_per_px"])) for r in rows]
+
+
+COLUMNS = ("matched", "area_ratio", "minor_ratio", "on_ref_background", "on_other_grain", "ref_background",
+           "found_background")
+
+
+def table(title: str, rows: list[tuple[str, dict]], each: bool) -> None:
+    print(f"\n{title}\n| image | " + " | ".join(COLUMNS) + " |\n|---|" + "---|" * len(COLUMNS))
+    if each:
+        for name, r in rows:
+            print(f"| {name} | " + " | ".join(f"{r[c]:.3f}" if c != "matched" else str(r[c]) for c in COLUMNS) + " |")
+    med = {c: float(np.nanmedian([r[c] for _, r in rows])) for c in COLUMNS}
+    print(f"| median of {len(rows)} | " + " | ".join(f"{med[c]:.3f}" if c != "matched" else f"{med[c]:.0f}"
+                                                    for c in COLUMNS) + " |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", type=Path, required=True, help="an instance model.pt")
+    ap.add_argument("--photos", type=Path, nargs="*", default=[], help="photo set folders (labels.csv, *_mask.png)")
+    ap.add_argument("--auto-scale", action="store_true", help="read the photos as predict --auto-scale does")
+    ap.add_argument("--results", type=Path, help="a results root: also its datasets' test scenes")
+    ap.add_argument("--datasets", nargs="*", default=[], help="datasets of --results")
+    ap.add_argument("--split", default="test")
+    a = ap.parse_args()
+    work = Path(tempfile.mkdtemp(prefix="mask-fit-"))
+    try:
+        for folder in a.photos:
+            table(f"{folder} ({'--auto-scale' if a.auto_scale else 'at the labels scale'})",
+                  photo_set(a.model, folder, a.auto_scale, work / folder.name), each=True)
+        for ds in a.datasets:
+            table(f"{a.results}/{ds}, {a.split} split", scenes(a.model, a.results, ds, a.split, work), each=False)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
