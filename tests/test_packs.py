@@ -35,7 +35,8 @@ def results(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("res")
     dirs = [make_scene(cfg, root / "tiny" / "scenes" / f"tiny-{i:06d}", index=i) for i in range(8)]
     m = root / "tiny" / "manifest"
-    write_shard(dirs, root, {"train": 1.0}, m / "scenes" / "shard-00000.parquet", m / "particles" / "shard-00000.parquet")
+    write_shard(dirs, root, {"train": 1.0}, m / "scenes" / "shard-00000.parquet",
+                m / "particles" / "shard-00000.parquet")
     t = _relabel(pq.read_table(m / "scenes" / "shard-00000.parquet"), "split", SPLITS)
     pq.write_table(t, m / "scenes" / "shard-00000.parquet")
     twin = root / "twin" / "manifest"
@@ -72,9 +73,11 @@ def test_shard_sizes_are_as_few_as_allowed_and_within_one_of_each_other():
 
 def test_shard_plan_deals_shards_without_overlap_and_the_same_count_to_every_rank():
     counts = [3, 3, 3, 2]
-    # two ranks, one worker each: rank 0 reads shards 0 and 2 (6 scenes), rank 1 shards 1 and 3 (5): both yield 5
-    assert shard_plan(counts, 0, 2, 0, 1) == ([0, 2], 5)
-    assert shard_plan(counts, 1, 2, 0, 1) == ([1, 3], 5)
+    # two ranks, one worker each: rank 0 reads shards 0 and 2, rank 1 shards 1 and 3: two shards of at least 2
+    # scenes each, whatever their order, so both yield 4
+    assert shard_plan(counts, 0, 2, 0, 1) == ([0, 2], 4)
+    assert shard_plan(counts, 1, 2, 0, 1) == ([1, 3], 4)
+    assert shard_plan([3, 3, 3], 1, 2, 0, 1) == ([1], 3)  # rank 0 has two shards, rank 1 one
     counts = [5, 5, 4, 4, 4, 4, 4, 4]
     for world, workers in [(1, 1), (2, 2), (4, 2), (1, 8)]:
         seen, per_rank = [], []
@@ -273,3 +276,90 @@ def test_the_pack_command(results, tmp_path, capsys):
     assert main(["pack", "--results", str(results), "--datasets", "tiny", "--quality", "101",
                  "--out", str(tmp_path / "q")]) == 2
     assert "--quality" in capsys.readouterr().err
+
+
+def test_a_pack_holds_the_size_codes_training_makes_from_the_scene_folders(results, packed):
+    from psdfactory.learn.data import SceneImages, manifest_rows, particles_by_scene
+    from psdfactory.learn.shards import ShardScenes
+    from psdfactory.learn.size_cells import ScenesWithSizeCodes
+
+    rows = manifest_rows(results, "tiny", ("train",))
+    folders = ScenesWithSizeCodes(SceneImages(results, rows, 32), particles_by_scene(results, ["tiny"]))
+    want = {r["scene_id"]: folders.codes(i) for i, r in enumerate(rows)}
+    got = list(ShardScenes(packed, "train", fields=("codes", "meta")))
+    assert len(got) == len(want)
+    for codes, meta in got:
+        assert codes.dtype == torch.uint8 and torch.equal(codes, want[meta["scene_id"]])
+
+
+def train_slice(**over) -> dict:
+    from psdfactory import config as psd_config
+
+    p = psd_config.train_params(tiny_config(), "resnet18")
+    p.update(pretrained="none", epochs=2, batch_size=3, lr=3e-3, input_size=32, precision="fp32", seed=1,
+             early_stopping_patience=50, datasets=["tiny"], size_cells=1.0)
+    p.update(over)
+    return p
+
+
+@pytest.fixture(scope="module")
+def pack32(results, tmp_path_factory) -> Path:
+    """`tiny` at 32 px JPEG with masks, shards of at most 3 scenes: 2 train shards, 1 val."""
+    from psdfactory.learn.shards import pack
+
+    out = tmp_path_factory.mktemp("packs") / "p32"
+    pack(results, ["tiny"], out, PackSpec(size=32, shard_scenes=3))
+    return out
+
+
+def test_a_cnn_trains_from_a_pack_as_from_the_folders(results, pack32, tmp_path):
+    from psdfactory.learn.runtime import load_model
+    from psdfactory.learn.train import train_from_params
+
+    folders = train_from_params(train_slice(), results, tmp_path / "folders")
+    packed = train_from_params(train_slice(), results, tmp_path / "pack", pack=pack32, loader_workers=2)
+    for k in ("size_definition", "weighting", "mm_per_px", "image_resolution", "input_size"):
+        assert packed[k] == pytest.approx(folders[k]), k
+    for k, v in folders["target_stats"].items():
+        assert packed["target_stats"][k] == pytest.approx(v), k
+    assert packed["pack"] == {"path": str(pack32), "datasets": ["tiny"], "ranks": 1}
+    assert packed["epochs_run"] == 2 and (tmp_path / "pack" / "history.csv").is_file()
+    model, meta = load_model(tmp_path / "pack" / "model.pt")
+    assert meta["pack"]["ranks"] == 1
+    assert model(torch.zeros(1, 3, 32, 32)).shape[-1] == 3
+
+
+def test_what_cannot_train_from_a_pack_is_refused(results, pack32, tmp_path, monkeypatch):
+    from psdfactory.learn.train import train_from_params
+
+    with pytest.raises(PsdError, match="holds 32 px images, resnet18 trains at 64 px: pack with --size 64"):
+        train_from_params(train_slice(input_size=64), results, tmp_path, pack=pack32)
+    with pytest.raises(PsdError, match="not from a pack"):
+        from psdfactory import config as psd_config
+
+        train_from_params(psd_config.train_params(tiny_config(), "instances"), results, tmp_path, pack=pack32)
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    with pytest.raises(PsdError, match="training on 2 processes reads a pack"):
+        train_from_params(train_slice(), results, tmp_path)
+
+
+@pytest.mark.slow
+def test_two_processes_train_one_model_from_a_pack_under_torchrun(results, pack32, tmp_path):
+    """torchrun, 2 CPU processes (Gloo): each rank reads its own train shard, gradients are averaged,
+    rank 0 alone writes the model, the history and the log lines."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "ddp"
+    torchrun = Path(sys.executable).with_name("torchrun")
+    cmd = [str(torchrun), "--standalone", "--nproc-per-node", "2", "-m", "psdfactory.cli", "train",
+           "--params", json.dumps(train_slice()), "--results", str(results), "--out-dir", str(out),
+           "--pack", str(pack32), "--threads", "1"]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    meta = torch.load(out / "model.pt", weights_only=False)["meta"]
+    assert meta["pack"]["ranks"] == 2 and meta["epochs_run"] == 2
+    assert "distributed training: 2 processes (gloo)" in run.stderr
+    assert run.stderr.count("epoch 1: train loss") == 1  # rank 0's line only
+    assert len((out / "history.csv").read_text().splitlines()) == 3

@@ -95,10 +95,14 @@ def cmd_check_config(a: argparse.Namespace) -> None:
 
 
 def cmd_train(a: argparse.Namespace) -> None:
+    from .learn.distributed import ranks_from_env
     from .learn.train import train_from_params
 
+    if not ranks_from_env().main:  # one of several torchrun processes: rank 0 logs the progress
+        logging.getLogger("psdfactory").setLevel(logging.WARNING)
     _threads(a.threads)
-    train_from_params(_params(a.params), Path(a.results), Path(a.out_dir))
+    train_from_params(_params(a.params), Path(a.results), Path(a.out_dir),
+                      Path(a.pack) if a.pack else None, a.loader_workers)
 
 
 def cmd_evaluate(a: argparse.Namespace) -> None:
@@ -695,9 +699,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="FILE", help="the ceiling.json to write")
     p.set_defaults(func=cmd_ceiling)
 
-    p = workflow("train")
+    p = workflow("train", "A CNN can read its images from a pack (psdfactory pack) instead of the scene folders, and "
+                 "train on several GPUs under torchrun, each process its own shards: torchrun --nproc-per-node 8 "
+                 "-m psdfactory.cli train --pack DIR ... (docs/scale.md).")
     _job_args(p, "training settings as JSON (see learn.train.TrainParams)")
     _threads_arg(p, "the model's folder: model.pt, history.csv, TensorBoard logs")
+    p.add_argument("--pack", metavar="DIR", help="a CNN: read the train and val scenes from this pack, packed at the "
+                   "architecture's input size, instead of --results' scene folders (the only source under torchrun)")
+    p.add_argument("--loader-workers", type=int, default=0, metavar="N",
+                   help="with --pack: DataLoader worker processes decoding the shards, per training process")
     p.set_defaults(func=cmd_train)
 
     p = workflow("evaluate")

@@ -10,11 +10,13 @@ A pack is a folder:
   networks' input size), ``<scene_id>.json`` (its manifest row: the targets, the size definition and
   weighting, and ``packed_mm_per_px``, the scale at the packed size), and with masks
   ``<scene_id>.mask.png`` (the 16-bit instance mask at the packed size, nearest neighbour: mask id k
-  is particle k - 1) and ``<scene_id>.particles.npy`` (`manifest.PARTICLE_READ_COLUMNS` per particle, float64;
+  is particle k - 1), ``<scene_id>.codes.png`` (the dense size task's code map, `learn.size_cells`)
+  and ``<scene_id>.particles.npy`` (`manifest.PARTICLE_READ_COLUMNS` per particle, float64;
   the JSON's ``particle_columns`` names them).
-- ``index.json``: what was packed and how, and per split its shards with their scene counts, bytes
-  and SHA-256. Written last: the pack is complete when it is there (the whole folder is written
-  beside the old one and swapped in at the end).
+- ``index.json``: what was packed and how, and per split its scene count, target statistics,
+  median scale and render size, and its shards with their scene counts, bytes and SHA-256. Written
+  last: the pack is complete when it is there (the whole folder is written beside the old one and
+  swapped in at the end).
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ class PackSpec:
     size: int = DESIGN_INPUT_SIZE  # images (and masks) resized to size x size px
     image_format: str = "jpg"  # jpg | png (lossless)
     quality: int = 95  # JPEG quality
-    masks: bool = True  # also the instance masks and particle tables (the instance estimator, the size task)
+    masks: bool = True  # also the instance masks, size codes and particle tables (the dense size task)
     shard_scenes: int = 10_000  # scenes per shard at most
     seed: int = 0  # the order scenes are mixed in
 
@@ -108,11 +110,11 @@ def epoch_order(shards: list[dict], seed: int, epoch: int) -> list[dict]:
 
 def shard_plan(counts: list[int], rank: int, world: int, worker: int, workers: int) -> tuple[list[int], int]:
     """Which of an epoch's shards (their scene `counts`, in the epoch's order) one loader worker of
-    one rank reads, and how many of their scenes it yields: the least any rank's same worker has,
-    so every rank yields the same number of samples (DDP steps in lockstep) and none twice."""
-    shards = list(range(len(counts)))
-
-    def share(r: int) -> int:
-        return sum(counts[i] for i in shards[r::world][worker::workers])
-
-    return shards[rank::world][worker::workers], min(share(r) for r in range(world))
+    one rank reads, and how many of their scenes it yields: as many shards as any rank's same
+    worker is dealt at least, times the smallest shard's count. So every rank yields the same
+    number of samples (DDP's ranks step in lockstep), none twice, and the same number every epoch
+    whatever the order (a one-cycle schedule knows its steps in advance). With the packer's shards,
+    within one scene of each other in size, at most one scene a shard is left out of an epoch."""
+    positions = list(range(len(counts)))
+    least = min(len(positions[r::world][worker::workers]) for r in range(world))
+    return positions[rank::world][worker::workers], least * min(counts, default=0)

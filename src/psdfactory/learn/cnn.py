@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .. import __version__
+from .. import PsdError, __version__
 from ..psd import TARGETS
 from .augment import augment_d4, photometric, random_crop, rescale
 from .data import SceneImages, label_definition, normalise, particles_by_scene, training_rows
@@ -61,11 +61,13 @@ class OutputOnly(nn.Module):
 @dataclass
 class SizeCells:
     """The dense size-histogram task of `learn.size_cells` while training: the tap on the
-    backbone's last feature map, the head that reads it, and the loss weight."""
+    backbone's last feature map, the head that reads it (as it trains: DistributedDataParallel on
+    several ranks), the loss weight, and the head itself (what is saved)."""
 
     tap: object
     head: nn.Module
     weight: float
+    module: nn.Module
 
     def loss(self, codes: torch.Tensor) -> torch.Tensor:
         from .size_cells import cell_loss, cell_targets
@@ -130,80 +132,164 @@ class CnnRegressor(Estimator):
         return [Reading(np.asarray(o, dtype=float)) for o in np.asarray(outputs).reshape(-1, len(TARGETS))]
 
     @classmethod
-    def train(cls, params, results_root: Path, out_dir: Path, settings: dict | None = None) -> dict:
+    def train(cls, params, results_root: Path, out_dir: Path, settings: dict | None = None,
+              pack: Path | None = None, loader_workers: int = 0) -> dict:
+        """Train on the datasets' scene folders, or on a pack's shards (`pack`, read by
+        `loader_workers` DataLoader workers); under ``torchrun`` on several processes (a pack
+        only: each rank its own shards, `learn.distributed`)."""
+        from .distributed import agree, barrier, ranks_from_env, start, stop, wrap
+
+        ranks = ranks_from_env()
+        if ranks.distributed and pack is None:
+            raise PsdError(f"training on {ranks.world} processes reads a pack, each rank its own shards: pack the "
+                           "training datasets (psdfactory pack) and give it with --pack")
         torch.manual_seed(params.seed)
         np.random.seed(params.seed % 2**32)
-        device = pick_device(params.device)
+        device = start(ranks, pick_device(params.device))
         size = input_size(params.arch, {params.arch: params.input_size})
         crop = crop_size(params.arch, params.crop, size)
-
-        train_rows, val_rows, rows = training_rows(results_root, params.datasets)
-        train_ds = SceneImages(results_root, train_rows, size)
-        val_ds = SceneImages(results_root, val_rows, size)
-        stats = TargetStats.from_targets(train_ds.y)
+        cells_on = params.size_cells > 0
+        loader_gen = torch.Generator().manual_seed(params.seed + 1)
+        if pack is None:
+            data = folder_data(params, results_root, size, cells_on, loader_gen)
+        else:
+            data = pack_data(params, Path(pack), size, cells_on, loader_workers, ranks)
+        stats = data.stats
         model, weights_used = build_model(params.arch, stats, params.pretrained, size=size)
         if params.arch == "inception_v3" and not inception_aux_fits(size):
             logger.info(f"inception_v3 at {size} px: auxiliary head dropped (it needs ≥ 299 px)")
         model = model.to(device).to(memory_format=torch.channels_last)
-        batch = min(params.batch_size, len(train_ds))
-        precision = training_precision(params.precision, device, model, crop or size, batch,
-                                       lambda out: loss_fn(out, torch.zeros(batch, 3), stats, params.aux_loss_weight))
-        cells, fed = None, train_ds
-        if params.size_cells > 0:  # the dense size-histogram task: a head on the last feature map, training only
-            from .size_cells import CellHead, FeatureTap, ScenesWithSizeCodes, feature_channels
+        batch = min(params.batch_size, data.n_train)
+        precision = agree(training_precision(params.precision, device, model, crop or size, batch,
+                                             lambda out: loss_fn(out, torch.zeros(batch, 3), stats,
+                                                                 params.aux_loss_weight)), ranks)
+        cells = None
+        if cells_on:  # the dense size-histogram task: a head on the last feature map, training only
+            from .size_cells import CellHead, FeatureTap, feature_channels
 
             tap = FeatureTap(model, params.arch)
-            cells = SizeCells(tap, CellHead(feature_channels(model, tap, size)).to(device), params.size_cells)
-            fed = ScenesWithSizeCodes(train_ds, particles_by_scene(results_root, params.datasets))
-        trained = list(model.parameters()) + (list(cells.head.parameters()) if cells is not None else [])
+            head = CellHead(feature_channels(model, tap, size)).to(device)
+            cells = SizeCells(tap, wrap(head, ranks, device), params.size_cells, head)
+        net = wrap(model, ranks, device)  # what steps; `model` inside it is what is saved
+        trained = list(model.parameters()) + (list(cells.module.parameters()) if cells is not None else [])
         opt = torch.optim.Adam(trained, lr=params.lr, weight_decay=params.weight_decay)
         gen = torch.Generator().manual_seed(params.seed)
-        loader_gen = torch.Generator().manual_seed(params.seed + 1)
-        train_loader = torch.utils.data.DataLoader(fed, batch_size=params.batch_size, shuffle=True,
-                                                   generator=loader_gen)
-        sched = LrSchedule(opt, params.lr_schedule, params.epochs, len(train_loader), params.lr_factor,
+        sched = LrSchedule(opt, params.lr_schedule, params.epochs, len(data.train_loader), params.lr_factor,
                            params.lr_patience)
-        val_loader = torch.utils.data.DataLoader(val_ds, batch_size=params.batch_size)
 
         def validate() -> dict:
-            pred, y = predict_batches(model, val_loader, device, precision)
+            pred, y = predict_batches(model, data.val_loader, device, precision)
             return {"val_loss": float(nn.functional.mse_loss(stats.standardise(pred), stats.standardise(y))),
                     "val_mae_mm": float((pred - y).abs().mean())}
 
         scaler = loss_scaler(device, precision)
-        task = FitTask(model, opt, sched, lambda bar: run_epoch(model, train_loader, stats, opt, sched, device,
-                                                                 precision, params.aux_loss_weight, gen, params, bar,
-                                                                 cells, scaler, crop),
-                       validate, len(train_ds), "img", modules={"cell_head": cells.head} if cells else {},
-                       generators={"gen": gen, "loader_gen": loader_gen}, scaler=scaler)
+        task = FitTask(model, opt, sched, lambda bar: run_epoch(net, data.train_loader, stats, opt, sched, device,
+                                                               precision, params.aux_loss_weight, gen, params, bar,
+                                                               cells, scaler, crop),
+                       validate, data.n_train, "img", modules={"cell_head": cells.module} if cells else {},
+                       generators={"gen": gen, "loader_gen": loader_gen}, scaler=scaler,
+                       before_epoch=data.before_epoch)
         n_params = count_parameters(model)
         logger.info(f"training {params.arch} ({n_params / 1e6:.1f} M parameters, weights: {weights_used}) on "
-                    f"{len(train_ds)} train / {len(val_ds)} val scenes of {', '.join(params.datasets)}, input {size} "
-                    f"px{f' (trained on random {crop}-px windows)' if crop else ''}, {device} {precision}, up to "
-                    f"{params.epochs} epochs")
+                    f"{data.describe}, input {size} px{f' (trained on random {crop}-px windows)' if crop else ''}, "
+                    f"{device} {precision}, up to {params.epochs} epochs")
         meta = {
             "arch": params.arch,
             "input_size": size,
             "target_stats": asdict(stats),
             "targets": list(TARGETS),
-            **label_definition(train_rows + val_rows),
-            "mm_per_px": float(np.median([r["mm_per_px"] for r in train_rows])),
-            "image_resolution": int(np.median([r["resolution"] for r in train_rows])),
+            **data.definition,
+            "mm_per_px": data.mm_per_px,
+            "image_resolution": data.resolution,
             "weights": weights_used,
             "params": asdict(params),
             "n_parameters": n_params,
             "psdfactory_version": __version__,
         }
-        ids = [(r["scene_id"], r["split"], *(r[t] for t in TARGETS)) for r in rows]
+        if pack is not None:
+            meta["pack"] = {"path": str(pack), "datasets": data.datasets, "ranks": ranks.world}
         res = fit(task, params.arch, params.epochs, params.early_stopping_patience, out_dir,
-                  fingerprint(asdict(params), ids), meta)
+                  fingerprint(asdict(params), data.fingerprint), meta, ranks)
         if cells is not None:
             cells.tap.remove()
         summary = {**meta, "epoch": res.best_epoch, "val_loss": res.best_loss, "best_epoch": res.best_epoch,
                    "epochs_run": len(res.history), "stop_reason": res.stop_reason, "precision": precision,
                    "device": str(device)}
-        save_model(out_dir / "model.pt", model, summary)
-        write_history(res.history, out_dir / "history.csv")
-        logger.info(f"done: best val loss {res.best_loss:.4f} at epoch {res.best_epoch} ({res.stop_reason}); wrote "
-                    f"{out_dir / 'model.pt'}")
+        if ranks.main:
+            save_model(out_dir / "model.pt", model, summary)
+            write_history(res.history, out_dir / "history.csv")
+            logger.info(f"done: best val loss {res.best_loss:.4f} at epoch {res.best_epoch} ({res.stop_reason}); "
+                        f"wrote {out_dir / 'model.pt'}")
+        barrier(ranks)
+        stop(ranks)
         return summary
+
+
+@dataclass
+class TrainingData:
+    """Where a CNN's training reads its images: the loaders and what the model's meta and the
+    resumable checkpoint's fingerprint need of them."""
+
+    train_loader: torch.utils.data.DataLoader
+    val_loader: torch.utils.data.DataLoader
+    stats: TargetStats
+    n_train: int  # training images an epoch (on this rank)
+    definition: dict  # size_definition, weighting
+    mm_per_px: float  # the training images' median scale, at their render size
+    resolution: int  # their median render size (px)
+    fingerprint: list  # what identifies the training data
+    describe: str  # for the log
+    datasets: list[str]
+    before_epoch: object = None  # called with the epoch's index before it
+
+
+def folder_data(params, results_root: Path, size: int, cells: bool, loader_gen: torch.Generator) -> TrainingData:
+    """The datasets' train and val scenes from their folders (decoded once, cached in memory)."""
+    train_rows, val_rows, rows = training_rows(results_root, params.datasets)
+    train_ds = SceneImages(results_root, train_rows, size)
+    val_ds = SceneImages(results_root, val_rows, size)
+    fed = train_ds
+    if cells:
+        from .size_cells import ScenesWithSizeCodes
+
+        fed = ScenesWithSizeCodes(train_ds, particles_by_scene(results_root, params.datasets))
+    return TrainingData(
+        torch.utils.data.DataLoader(fed, batch_size=params.batch_size, shuffle=True, generator=loader_gen),
+        torch.utils.data.DataLoader(val_ds, batch_size=params.batch_size),
+        TargetStats.from_targets(train_ds.y), len(train_ds), label_definition(train_rows + val_rows),
+        float(np.median([r["mm_per_px"] for r in train_rows])),
+        int(np.median([r["resolution"] for r in train_rows])),
+        [(r["scene_id"], r["split"], *(r[t] for t in TARGETS)) for r in rows],
+        f"{len(train_ds)} train / {len(val_ds)} val scenes of {', '.join(params.datasets)}", list(params.datasets))
+
+
+def pack_data(params, pack: Path, size: int, cells: bool, workers: int, ranks) -> TrainingData:
+    """A pack's train split, each rank its own shards, and its whole val split on every rank."""
+    from ..packs import read_index
+    from .shards import ShardScenes, stack_codes
+
+    index = read_index(pack)
+    if index["size"] != size:
+        raise PsdError(f"--pack {pack} holds {index['size']} px images, {params.arch} trains at {size} px: pack "
+                       f"with --size {size} (or set train.input_size.{params.arch})")
+    for split in ("train", "val"):
+        if split not in index["splits"]:
+            raise PsdError(f"--pack {pack} has no {split} split; training needs train and val scenes")
+    if cells and not index["masks"]:
+        raise PsdError(f"--pack {pack} was packed with --no-masks: train.size_cells needs its size codes; pack "
+                       "with masks, or set train.size_cells: 0")
+    train_ds = ShardScenes(pack, "train", ("image", "codes", "targets") if cells else ("image", "targets"),
+                           seed=params.seed, num_workers=workers, transform=stack_codes if cells else None)
+    val_ds = ShardScenes(pack, "val", ("image", "targets"), shuffle_buffer=0, world=(0, 1))  # all of it, every rank
+    train = index["splits"]["train"]
+    n_val = index["splits"]["val"]["scenes"]
+    return TrainingData(
+        torch.utils.data.DataLoader(train_ds, batch_size=params.batch_size, num_workers=workers),
+        torch.utils.data.DataLoader(val_ds, batch_size=params.batch_size),
+        TargetStats(**train["target_stats"]), len(train_ds),
+        {"size_definition": index["size_definition"], "weighting": index["weighting"]},
+        float(train["mm_per_px"]), int(train["resolution"]),
+        [s["sha256"] for split in ("train", "val") for s in index["splits"][split]["shards"]],
+        f"the pack {pack} ({', '.join(index['datasets'])}: {train['scenes']} train / {n_val} val scenes; "
+        f"{len(train_ds)} a rank on {ranks.world} rank{'s' * (ranks.world > 1)}, {workers} loader workers each)",
+        list(index["datasets"]), train_ds.set_epoch)

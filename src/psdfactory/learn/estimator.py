@@ -103,7 +103,8 @@ class Estimator:
     # ---- what a subclass gives ---------------------------------------------------------------
 
     @classmethod
-    def train(cls, params, results_root: Path, out_dir: Path, settings: dict | None = None) -> dict:
+    def train(cls, params, results_root: Path, out_dir: Path, settings: dict | None = None,
+              pack: Path | None = None, loader_workers: int = 0) -> dict:
         raise NotImplementedError
 
     @classmethod

@@ -23,10 +23,12 @@ from torch import nn
 
 from .. import PsdError
 from ..io import atomic_path
+from .distributed import Ranks, barrier
 from .runtime import LrSchedule, load_checkpoint, save_model, write_torch
 
 logger = logging.getLogger(__name__)
 HISTORY_COLUMNS = ("epoch", "train_loss", "val_loss", "val_mae_mm", "lr", "seconds")
+SINGLE = Ranks()  # one process
 
 
 def fingerprint(settings: dict, data: list) -> str:
@@ -53,6 +55,9 @@ class FitTask:
     is the network saved as the best checkpoint; `modules` (the model among them) and
     `generators` are saved in the resumable checkpoint with the optimiser, the schedule and the
     fp16 loss `scaler` (`runtime.loss_scaler`; None in bf16 and fp32) that `train_epoch` steps with.
+    In a distributed training (`learn.distributed`) `model` is the module inside the
+    DistributedDataParallel wrapper that `train_epoch` steps, and `validate` returns the same on
+    every rank.
     """
 
     model: nn.Module
@@ -65,6 +70,7 @@ class FitTask:
     modules: dict[str, nn.Module] = field(default_factory=dict)
     generators: dict[str, torch.Generator] = field(default_factory=dict)
     scaler: torch.amp.GradScaler | None = None
+    before_epoch: Callable[[int], None] | None = None  # called with the epoch's index before it (a pack's set_epoch)
 
 
 @dataclass
@@ -112,17 +118,19 @@ def _resume(task: FitTask, path: Path, fp: str, name: str) -> tuple[int, list[di
     return ck["epoch"] + 1, ck["history"], ck["best"], ck["best_epoch"], ck["stale"]
 
 
-def fit(task: FitTask, name: str, epochs: int, patience: int, out_dir: Path, fp: str, meta: dict) -> FitResult:
+def fit(task: FitTask, name: str, epochs: int, patience: int, out_dir: Path, fp: str, meta: dict,
+        ranks: Ranks = SINGLE) -> FitResult:
     """Train `task` for up to `epochs` epochs; the best weights (by validation loss) are in
     `task.model` at the end and in ``checkpoints/best.pt`` (with `meta`). Refuses a run that
-    trained no epoch."""
+    trained no epoch. Of several `ranks`, rank 0 alone writes files and logs; all decide alike."""
     from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
     ckpt_dir = out_dir / "checkpoints"
     last_path = ckpt_dir / "last.pt"
     start, history, best, best_epoch, stale = _resume(task, last_path, fp, name)
-    tb = SummaryWriter(str(out_dir / "tensorboard"))
+    tb = SummaryWriter(str(out_dir / "tensorboard")) if ranks.main else None
+    talk = ranks.main and logger.isEnabledFor(logging.INFO)
     stop_reason = "max epochs"
     t_start = time.perf_counter()
     try:
@@ -131,8 +139,10 @@ def fit(task: FitTask, name: str, epochs: int, patience: int, out_dir: Path, fp:
                 stop_reason = f"early stopping (no better val loss for {stale} epochs)"
                 break
             t0 = time.perf_counter()
+            if task.before_epoch is not None:
+                task.before_epoch(epoch)
             with tqdm(total=task.items_per_epoch, desc=f"{name} epoch {epoch + 1}/{epochs}", unit=task.unit,
-                      mininterval=2.0, disable=not logger.isEnabledFor(logging.INFO)) as bar:
+                      mininterval=2.0, disable=not talk) as bar:
                 train_loss = task.train_epoch(bar)
             val = task.validate()
             task.schedule.after_epoch(val["val_loss"])
@@ -140,26 +150,30 @@ def fit(task: FitTask, name: str, epochs: int, patience: int, out_dir: Path, fp:
                    "val_mae_mm": val.get("val_mae_mm", float("nan")), "lr": task.optimizer.param_groups[0]["lr"],
                    "seconds": time.perf_counter() - t0}
             history.append(row)
-            for k in ("train_loss", "val_loss", "val_mae_mm", "lr"):
-                if math.isfinite(row[k]):
-                    tb.add_scalar(k, row[k], epoch + 1)
             improved = row["val_loss"] < best
             if improved:
                 best, best_epoch, stale = row["val_loss"], epoch + 1, 0
-                save_model(ckpt_dir / "best.pt", task.model, {**meta, "epoch": epoch + 1, "val_loss": best})
             else:
                 stale += 1
-            mae = f", val MAE {row['val_mae_mm']:.3f} mm" if math.isfinite(row["val_mae_mm"]) else ""
-            logger.info(f"epoch {epoch + 1}: train loss {train_loss:.4f}, val loss {row['val_loss']:.4f}{mae}, "
-                        f"lr {row['lr']:.2e}, {row['seconds']:.0f} s{' (best)' if improved else ''}")
-            write_torch(last_path, _state(task, fp, epoch, history, best, best_epoch, stale))
-            write_history(history, out_dir / "history.csv")
+            if ranks.main:
+                for k in ("train_loss", "val_loss", "val_mae_mm", "lr"):
+                    if math.isfinite(row[k]):
+                        tb.add_scalar(k, row[k], epoch + 1)
+                if improved:
+                    save_model(ckpt_dir / "best.pt", task.model, {**meta, "epoch": epoch + 1, "val_loss": best})
+                mae = f", val MAE {row['val_mae_mm']:.3f} mm" if math.isfinite(row["val_mae_mm"]) else ""
+                logger.info(f"epoch {epoch + 1}: train loss {train_loss:.4f}, val loss {row['val_loss']:.4f}{mae}, "
+                            f"lr {row['lr']:.2e}, {row['seconds']:.0f} s{' (best)' if improved else ''}")
+                write_torch(last_path, _state(task, fp, epoch, history, best, best_epoch, stale))
+                write_history(history, out_dir / "history.csv")
             if stale >= patience:
                 stop_reason = f"early stopping (no better val loss for {stale} epochs)"
                 break
     finally:
-        tb.close()
+        if tb is not None:
+            tb.close()
     if best_epoch < 0:
         raise PsdError("no epoch was trained (train.epochs must be ≥ 1)")
+    barrier(ranks)  # best.pt is rank 0's: the others read it once it is written
     task.model.load_state_dict(load_checkpoint(ckpt_dir / "best.pt", "training checkpoint")["state_dict"])
     return FitResult(best, best_epoch, history, stop_reason, time.perf_counter() - t_start)

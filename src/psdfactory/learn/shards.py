@@ -45,7 +45,7 @@ from .data import label_definition, manifest_rows, to_input
 
 logger = logging.getLogger(__name__)
 
-FIELDS = ("image", "targets", "mask", "particles", "meta")  # what ShardScenes can yield per scene
+FIELDS = ("image", "targets", "mask", "codes", "particles", "meta")  # what ShardScenes can yield per scene
 
 
 def _encode_image(array: np.ndarray, fmt: str, quality: int) -> bytes:
@@ -59,37 +59,51 @@ def _encode_image(array: np.ndarray, fmt: str, quality: int) -> bytes:
     return buf.getvalue()
 
 
-def resize_mask(mask: np.ndarray, size: int) -> np.ndarray:
-    """A 16-bit instance mask at size x size px, nearest neighbour (ids stay ids)."""
-    if mask.shape == (size, size):
-        return mask
-    rows = (np.arange(size) + 0.5) * mask.shape[0] / size
-    cols = (np.arange(size) + 0.5) * mask.shape[1] / size
-    return mask[np.minimum(rows.astype(int), mask.shape[0] - 1)][:, np.minimum(cols.astype(int), mask.shape[1] - 1)]
+def _png(array: np.ndarray) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, format="PNG")
+    return buf.getvalue()
 
 
 def scene_sample(results_root: Path, row: dict, particles: dict | None, spec: PackSpec) -> dict:
     """One scene as a WebDataset sample: {"__key__": scene id, extension: bytes}."""
+    from .data import sizes_px_by_id
+    from .instances.draw import resize_mask
+    from .size_cells import resize_codes, size_code_map
+
     image = to_input(read_png(results_root / row["image_path"]), spec.size).permute(1, 2, 0).numpy()
     meta = {k: v for k, v in row.items() if not k.endswith("_path")}
     meta["packed_size"] = spec.size
     meta["packed_mm_per_px"] = float(row["mm_per_px"]) * float(row["resolution"]) / spec.size
     sample = {"__key__": row["scene_id"], spec.image_format: _encode_image(image, spec.image_format, spec.quality)}
     if spec.masks:
-        from PIL import Image
-
-        mask = resize_mask(read_png(results_root / row["mask_path"]), spec.size)
-        buf = io.BytesIO()
-        Image.fromarray(mask.astype(np.uint16)).save(buf, format="PNG")
-        sample["mask.png"] = buf.getvalue()
-        table = np.stack([np.asarray(particles[c], dtype=np.float64) for c in PARTICLE_READ_COLUMNS], axis=1) \
-            if particles is not None else np.zeros((0, len(PARTICLE_READ_COLUMNS)))
+        if particles is None:
+            raise PsdError(f"the particle manifest has no rows for {row['scene_id']}; rerun its manifest job")
+        mask = read_png(results_root / row["mask_path"])
+        sample["mask.png"] = _png(resize_mask(mask, (spec.size, spec.size)).astype(np.uint16))
+        # the dense size task's targets, made as training makes them from the full-size mask (size_cells)
+        codes = size_code_map(mask, sizes_px_by_id(particles, float(row["mm_per_px"])))
+        sample["codes.png"] = _png(resize_codes(torch.from_numpy(codes), spec.size).numpy())
+        table = np.stack([np.asarray(particles[c], dtype=np.float64) for c in PARTICLE_READ_COLUMNS], axis=1)
         buf = io.BytesIO()
         np.save(buf, table, allow_pickle=False)
         sample["particles.npy"] = buf.getvalue()
         meta["particle_columns"] = list(PARTICLE_READ_COLUMNS)
     sample["json"] = json.dumps(meta, default=float).encode()
     return sample
+
+
+def split_summary(rows: list[dict]) -> dict:
+    """What training needs of a split before reading it: its scene count, the statistics of its
+    targets (models.TargetStats) and its median scale and render size (a model's meta)."""
+    from .data import targets
+    from .models import TargetStats
+
+    return {"scenes": len(rows), "target_stats": asdict(TargetStats.from_targets(targets(rows))),
+            "mm_per_px": float(np.median([r["mm_per_px"] for r in rows])),
+            "resolution": int(np.median([r["resolution"] for r in rows]))}
 
 
 def _sample_job(args: tuple) -> dict:
@@ -167,7 +181,7 @@ def pack(results_root: Path, datasets: list[str] | tuple[str, ...], out_dir: Pat
         for s in names:
             shards = _write_split(results_root, pack_order(by_split[s], spec.seed), particles, s, stage, spec,
                                   jobs, bar)
-            index["splits"][s] = {"scenes": len(by_split[s]), "shards": shards}
+            index["splits"][s] = {**split_summary(by_split[s]), "shards": shards}
         write_json(stage / INDEX, index)
     total = sum(sh["bytes"] for v in index["splits"].values() for sh in v["shards"])
     logger.info(f"wrote {out_dir}: {len(rows)} scenes, {total / 1e6:.1f} MB ({total / len(rows) / 1e3:.1f} kB a scene)")
@@ -176,26 +190,29 @@ def pack(results_root: Path, datasets: list[str] | tuple[str, ...], out_dir: Pat
 
 class ShardScenes(torch.utils.data.IterableDataset):
     """One split of a pack, scene by scene: the `fields` of each (image: uint8 3 x size x size;
-    targets: float32 d10/d50/d90 in mm; mask: int32 size x size; particles: float64 n x 3; meta:
-    the manifest row), as a tuple in that order.
+    targets: float32 d10/d50/d90 in mm; mask: int32 size x size; codes: the dense size task's uint8
+    size x size code map, `size_cells`; particles: float64 n x 3; meta: the manifest row), as a
+    tuple in that order.
 
     Each epoch the split's shards are put in an order drawn from (seed, epoch), dealt to the ranks
     and then to each rank's loader workers (`num_workers` must be the DataLoader's), and read
     through a shuffle buffer of `shuffle_buffer` scenes. `len()` is the samples one rank yields an
     epoch, the same on every rank. `url` turns a shard's name into what WebDataset opens (default:
-    the file in the index's folder)."""
+    the file in the index's folder); `world` = (0, 1) reads the whole split on any rank (validation);
+    `transform` maps each scene's fields to what is yielded."""
 
     def __init__(self, pack_dir: Path | str, split: str = "train", fields: tuple[str, ...] = ("image", "targets"),
                  shuffle_buffer: int = 1000, seed: int = 0, num_workers: int = 0, url: str | None = None,
-                 world: tuple[int, int] | None = None):
+                 world: tuple[int, int] | None = None, transform=None):
         super().__init__()
         self.dir = Path(pack_dir)
         self.index = read_index(self.dir)
         bad = [f for f in fields if f not in FIELDS]
         if bad or not fields:
             raise PsdError(f"fields {bad or '(none)'}: choose from {', '.join(FIELDS)}")
-        if not self.index["masks"] and {"mask", "particles"} & set(fields):
-            raise PsdError(f"{self.dir} was packed without masks (--no-masks): it has no mask or particles")
+        if not self.index["masks"] and {"mask", "codes", "particles"} & set(fields):
+            raise PsdError(f"{self.dir} was packed without masks (--no-masks): it has no masks, size codes or "
+                           "particles")
         if split not in self.index["splits"]:
             has = ", ".join(self.index["splits"]) or "none"
             raise PsdError(f"{self.dir} holds no {split!r} scenes (it has: {has})")
@@ -203,6 +220,7 @@ class ShardScenes(torch.utils.data.IterableDataset):
         self.shards = self.index["splits"][split]["shards"]
         self.shuffle_buffer, self.num_workers, self.url = int(shuffle_buffer), int(num_workers), url
         self.world = world  # (rank, world size); default: what torch.distributed or RANK/WORLD_SIZE say
+        self.transform = transform  # applied to each scene's fields (a module-level function: workers pickle it)
         self.epoch = 0
         rank, size = self._rank()
         if len(self.shards) < size * max(self.num_workers, 1):
@@ -265,7 +283,14 @@ class ShardScenes(torch.utils.data.IterableDataset):
         samples = wds.shuffle(self.shuffle_buffer, initial=min(self.shuffle_buffer, 100), rng=rng)(samples) \
             if self.shuffle_buffer > 1 else samples
         for sample in islice(samples, n):
-            yield decode(sample, self.fields, self.index["image_format"])
+            item = decode(sample, self.fields, self.index["image_format"])
+            yield item if self.transform is None else self.transform(*item)
+
+
+def stack_codes(image: torch.Tensor, codes: torch.Tensor, targets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(image with the size codes as a fourth channel, targets): what the CNNs' training with the
+    dense size task takes (`size_cells.ScenesWithSizeCodes` gives the same from scene folders)."""
+    return torch.cat([image, codes[None]]), targets
 
 
 def decode(sample: dict, fields: tuple[str, ...], image_format: str) -> tuple:
@@ -289,6 +314,9 @@ def decode(sample: dict, fields: tuple[str, ...], image_format: str) -> tuple:
         elif f == "mask":
             with Image.open(io.BytesIO(member("mask.png"))) as im:
                 out.append(torch.from_numpy(np.asarray(im).astype(np.int32)))
+        elif f == "codes":
+            with Image.open(io.BytesIO(member("codes.png"))) as im:
+                out.append(torch.from_numpy(np.array(im, dtype=np.uint8)))
         elif f == "particles":
             out.append(np.load(io.BytesIO(member("particles.npy")), allow_pickle=False))
         else:

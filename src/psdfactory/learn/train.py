@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from .. import PsdError
 from ..config import config_fields
 
 
@@ -44,17 +45,24 @@ class TrainParams:
         return cls(**config_fields(cls, {"crop": 0, **d}, "train"))
 
 
-def train_from_params(params: dict, results_root: Path, out_dir: Path) -> dict:
+def train_from_params(params: dict, results_root: Path, out_dir: Path, pack: Path | None = None,
+                      loader_workers: int = 0) -> dict:
     """`train` from a `config.train_params` slice: an estimator with settings of its own
     (`train.<arch>`, e.g. train.instances) gets them as `settings` (the others' slices do not
     carry them: editing them retrains nothing else)."""
     params = dict(params)
     settings = params.pop("settings", None)
-    return train(TrainParams.from_dict(params), results_root, out_dir, settings)
+    return train(TrainParams.from_dict(params), results_root, out_dir, settings, pack, loader_workers)
 
 
-def train(params: TrainParams, results_root: Path, out_dir: Path, settings: dict | None = None) -> dict:
-    """Train `params.arch` with its estimator; returns the model's meta (also in model.pt)."""
+def train(params: TrainParams, results_root: Path, out_dir: Path, settings: dict | None = None,
+          pack: Path | None = None, loader_workers: int = 0) -> dict:
+    """Train `params.arch` with its estimator; returns the model's meta (also in model.pt). With
+    `pack` (`psdfactory pack`) a CNN reads its images from the pack's shards instead of the scene
+    folders, `loader_workers` DataLoader workers each, on every rank of a ``torchrun`` job."""
     from .registry import estimator_class
 
-    return estimator_class(params.arch).train(params, Path(results_root), Path(out_dir), settings)
+    if loader_workers < 0:
+        raise PsdError(f"--loader-workers {loader_workers}: 0 (load in the training process) or more")
+    return estimator_class(params.arch).train(params, Path(results_root), Path(out_dir), settings,
+                                              Path(pack) if pack is not None else None, loader_workers)
