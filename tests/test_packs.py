@@ -252,6 +252,22 @@ def test_an_interrupted_pack_leaves_the_old_pack_as_it_was(results, packed, tmp_
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p"]  # no half pack beside it
 
 
+def test_a_pack_carries_the_users_umask(results, tmp_path):
+    import os
+    import stat
+
+    from psdfactory.learn.shards import pack
+
+    old = os.umask(0o002)
+    try:
+        pack(results, ["tiny"], tmp_path / "p", PackSpec(size=32, shard_scenes=4, masks=False))
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "p").stat().st_mode) == 0o775
+    for f in (tmp_path / "p").iterdir():
+        assert stat.S_IMODE(f.stat().st_mode) == 0o664, f.name
+
+
 def test_pack_refuses_what_would_make_a_wrong_pack(results, tmp_path):
     from psdfactory.learn.shards import pack
 
@@ -334,7 +350,7 @@ def test_what_cannot_train_from_a_pack_is_refused(results, pack32, tmp_path, mon
 
     with pytest.raises(PsdError, match="holds 32 px images, resnet18 trains at 64 px: pack with --size 64"):
         train_from_params(train_slice(input_size=64), results, tmp_path, pack=pack32)
-    with pytest.raises(PsdError, match="not from a pack"):
+    with pytest.raises(PsdError, match="'instances' does not train from a pack"):
         from psdfactory import config as psd_config
 
         train_from_params(psd_config.train_params(tiny_config(), "instances"), results, tmp_path, pack=pack32)

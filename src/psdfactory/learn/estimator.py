@@ -103,8 +103,10 @@ class Estimator:
     # ---- what a subclass gives ---------------------------------------------------------------
 
     @classmethod
-    def train(cls, params, results_root: Path, out_dir: Path, settings: dict | None = None,
-              pack: Path | None = None, loader_workers: int = 0) -> dict:
+    def train(cls, params, results_root: Path, out_dir: Path, settings: dict | None = None) -> dict:
+        """Train on `params.datasets` of `results_root` into `out_dir`; the model's meta. An
+        estimator that can also read a pack (`psdfactory pack`) takes ``pack`` and
+        ``loader_workers`` keywords too (the CNNs do)."""
         raise NotImplementedError
 
     @classmethod

@@ -60,9 +60,16 @@ def train(params: TrainParams, results_root: Path, out_dir: Path, settings: dict
     """Train `params.arch` with its estimator; returns the model's meta (also in model.pt). With
     `pack` (`psdfactory pack`) a CNN reads its images from the pack's shards instead of the scene
     folders, `loader_workers` DataLoader workers each, on every rank of a ``torchrun`` job."""
+    import inspect
+
     from .registry import estimator_class
 
+    estimator = estimator_class(params.arch)
+    if pack is None:  # the interface every estimator has (plugins' included)
+        return estimator.train(params, Path(results_root), Path(out_dir), settings)
     if loader_workers < 0:
         raise PsdError(f"--loader-workers {loader_workers}: 0 (load in the training process) or more")
-    return estimator_class(params.arch).train(params, Path(results_root), Path(out_dir), settings,
-                                              Path(pack) if pack is not None else None, loader_workers)
+    if "pack" not in inspect.signature(estimator.train).parameters:
+        raise PsdError(f"{params.arch!r} does not train from a pack: leave out --pack")
+    return estimator.train(params, Path(results_root), Path(out_dir), settings, pack=Path(pack),
+                           loader_workers=loader_workers)

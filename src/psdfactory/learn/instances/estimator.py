@@ -90,13 +90,10 @@ class InstanceEstimator(Estimator):
     # ---- the interface -----------------------------------------------------------------------
 
     @classmethod
-    def train(cls, params, results_root: Path, out_dir: Path, settings: dict | None = None,
-              pack: Path | None = None, loader_workers: int = 0) -> dict:
+    def train(cls, params, results_root: Path, out_dir: Path, settings: dict | None = None) -> dict:
+        """From the scene folders only (whole masks at render size, cropped as it trains): no pack."""
         from .training import InstanceSettings, train_instances
 
-        if pack is not None:
-            raise PsdError(f"{ARCH!r} trains from the scene folders (whole masks at render size, cropped as it "
-                           "trains), not from a pack: leave out --pack")
         if settings is None:
             raise PsdError(f"arch {ARCH!r} needs the train.{ARCH} settings (config.train_params gives them)")
         return train_instances(params, InstanceSettings.from_dict(settings), results_root, out_dir, cls)
