@@ -65,3 +65,24 @@ def tiny_results(tmp_path_factory) -> tuple[dict, Path]:
     for i in range(3):
         make_scene(cfg, root / "tiny" / "scenes" / f"tiny-{i:06d}", index=i)
     return cfg, root
+
+
+def split_dataset(root: Path, splits: list[str], resolution: int = 32, dataset: str = "tiny") -> list[Path]:
+    """len(splits) tiny scenes of `dataset` under `root` with their manifest, scene i in splits[i]
+    (the scenes' own split draws replaced: a test needs known counts per split); their folders."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from psdfactory.manifest import write_shard
+
+    cfg = tiny_config(n_scenes=len(splits), count=[15, 25])
+    cfg["render"]["resolution"] = resolution
+    dirs = [make_scene(cfg, root / dataset / "scenes" / f"{dataset}-{i:06d}", dataset, index=i)
+            for i in range(len(splits))]
+    m = root / dataset / "manifest"
+    write_shard(dirs, root, {"train": 1.0}, m / "scenes" / "shard-00000.parquet",
+                m / "particles" / "shard-00000.parquet")
+    t = pq.read_table(m / "scenes" / "shard-00000.parquet")
+    t = t.set_column(t.schema.get_field_index("split"), "split", pa.array(splits))
+    pq.write_table(t, m / "scenes" / "shard-00000.parquet")
+    return dirs

@@ -13,11 +13,10 @@ import torch
 
 from psdfactory import PsdError
 from psdfactory.io import read_png
-from psdfactory.manifest import write_shard
-from psdfactory.packs import PackSpec, epoch_order, read_index, shard_plan, shard_sizes
+from psdfactory.packs import PackSpec, epoch_order, left_out, read_index, shard_plan, shard_sizes
 from psdfactory.psd import TARGETS
 
-from .conftest import make_scene, tiny_config
+from .conftest import split_dataset, tiny_config
 
 SPLITS = ["train"] * 6 + ["val"] * 2
 
@@ -30,15 +29,10 @@ def _relabel(table: pa.Table, column: str, values) -> pa.Table:
 def results(tmp_path_factory) -> Path:
     """8 tiny scenes at 32 px (6 train, 2 val) as dataset `tiny`, and the same scenes' manifest
     again as dataset `twin` (other scene ids, the same images): two datasets to pack together."""
-    cfg = tiny_config(n_scenes=8, count=[15, 25])
-    cfg["render"]["resolution"] = 32
     root = tmp_path_factory.mktemp("res")
-    dirs = [make_scene(cfg, root / "tiny" / "scenes" / f"tiny-{i:06d}", index=i) for i in range(8)]
+    split_dataset(root, SPLITS)
     m = root / "tiny" / "manifest"
-    write_shard(dirs, root, {"train": 1.0}, m / "scenes" / "shard-00000.parquet",
-                m / "particles" / "shard-00000.parquet")
-    t = _relabel(pq.read_table(m / "scenes" / "shard-00000.parquet"), "split", SPLITS)
-    pq.write_table(t, m / "scenes" / "shard-00000.parquet")
+    t = pq.read_table(m / "scenes" / "shard-00000.parquet")
     twin = root / "twin" / "manifest"
     (twin / "scenes").mkdir(parents=True)
     (twin / "particles").mkdir(parents=True)
@@ -78,6 +72,9 @@ def test_shard_plan_deals_shards_without_overlap_and_the_same_count_to_every_ran
     assert shard_plan(counts, 0, 2, 0, 1) == ([0, 2], 4)
     assert shard_plan(counts, 1, 2, 0, 1) == ([1, 3], 4)
     assert shard_plan([3, 3, 3], 1, 2, 0, 1) == ([1], 3)  # rank 0 has two shards, rank 1 one
+    assert left_out([3, 3, 3], 2, 1) == 3 and left_out([3, 3, 3, 2], 2, 1) == 3
+    assert shard_plan(counts, 0, 1, 0, 1) == ([0, 1, 2, 3], 11)  # one rank: every scene
+    assert shard_plan(counts, 0, 1, 1, 2) == ([1, 3], 5) and left_out(counts, 1, 2) == 0
     counts = [5, 5, 4, 4, 4, 4, 4, 4]
     for world, workers in [(1, 1), (2, 2), (4, 2), (1, 8)]:
         seen, per_rank = [], []
@@ -271,15 +268,29 @@ def test_a_pack_carries_the_users_umask(results, tmp_path):
 def test_pack_refuses_what_would_make_a_wrong_pack(results, tmp_path):
     from psdfactory.learn.shards import pack
 
-    with pytest.raises(PsdError, match="inside a dataset it packs"):
-        pack(results, ["tiny"], results / "tiny" / "pack", PackSpec())
+    for out in (results / "tiny" / "pack", results, results.parent):
+        with pytest.raises(PsdError, match="overlaps .*which the pack reads"):
+            pack(results, ["tiny"], out, PackSpec())
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("mine")
+    with pytest.raises(PsdError, match="holds files and is not a pack"):
+        pack(results, ["tiny"], tmp_path / "mine", PackSpec())
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "mine"
     with pytest.raises(PsdError, match="--size 8"):
         pack(results, ["tiny"], tmp_path / "p", PackSpec(size=8))
-    with pytest.raises(PsdError, match="no scenes in the splits test"):
-        pack(results, ["tiny"], tmp_path / "p", PackSpec(), splits=("test",))
+    with pytest.raises(PsdError, match=r"no scenes in the split test to pack \(the manifests have: train, val\)"):
+        pack(results, ["tiny"], tmp_path / "p", PackSpec(), splits=("train", "test"))
     with pytest.raises(PsdError, match="no manifest"):
         pack(results, ["missing"], tmp_path / "p", PackSpec())
     assert not (tmp_path / "p").exists()
+
+
+def test_the_batches_an_epoch_count_each_loader_workers_last_batch(packed):
+    from psdfactory.learn.shards import ShardScenes
+
+    ds = ShardScenes(packed, "train", num_workers=2)  # 6 shards of one scene: 3 a worker, batches of 2, 1
+    loader = torch.utils.data.DataLoader(ds, batch_size=2, num_workers=2)
+    assert ds.batches(2) == 4 == sum(1 for _ in loader) and len(loader) == 3  # what DataLoader would count
 
 
 def test_the_pack_command(results, tmp_path, capsys):

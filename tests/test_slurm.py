@@ -247,3 +247,40 @@ def test_auto_device_warns_only_where_slurm_gave_a_gpu_cuda_cannot_see(monkeypat
     assert [r.levelname for r in caplog.records] == ["WARNING"]
     assert "SLURM allocated GPU(s) to this job (SLURM_JOB_GPUS=0; CUDA_VISIBLE_DEVICES=0) but CUDA sees none" in \
         caplog.records[0].getMessage()
+
+
+def test_a_cnn_trains_from_a_pack_on_a_nodes_two_gpus_through_sbatch(cluster, tmp_path):
+    """slurm/train_ddp.sbatch: submitted with --gres=gpu:2, it runs one training process per GPU
+    under torchrun (here on the CPU: the node's GPUs are stand-ins), each reading its own shards of
+    the pack, and rank 0 writes one model."""
+    import sys
+
+    from psdfactory.learn.shards import pack
+    from psdfactory.packs import PackSpec
+
+    from .conftest import split_dataset
+
+    results = tmp_path / "results"
+    split_dataset(results, ["train"] * 4 + ["val"] * 2)
+    pack(results, ["tiny"], tmp_path / "pack", PackSpec(size=32, shard_scenes=2))
+    cfg = write_config(tmp_path / "c.yaml", {
+        "results": str(results), "seed": 3, "datasets": {"tiny": {"n_scenes": 6}},
+        "train": {"datasets": ["tiny"], "architectures": ["resnet18"], "pretrained": "none", "epochs": 2,
+                  "batch_size": 2, "precision": "fp32", "size_cells": 0.0, "input_size": {"resnet18": 32}}})
+    out, log = tmp_path / "model", tmp_path / "job.log"
+    env = dict(cluster, PSD_PYTHON=sys.executable)
+    r = subprocess.run(["sbatch", "--wait", "--parsable", "--gres=gpu:2", "--cpus-per-task=2", "--mem=2G",
+                        "--partition", cluster["PSD_SLURM_GPU_PARTITION"], "--account", cluster["PSD_SLURM_ACCOUNT"],
+                        "--output", str(log), str(REPO / "slurm" / "train_ddp.sbatch"), str(cfg), "resnet18",
+                        str(tmp_path / "pack"), str(out)], env=env, capture_output=True, text=True, timeout=900)
+    text = log.read_text() if log.is_file() else ""
+    assert r.returncode == 0, r.stdout + r.stderr + text[-4000:]
+    job = r.stdout.strip().split(";")[0]
+    acct = subprocess.run(["sacct", "-X", "-n", "-P", "-j", job, "-o", "State,AllocTRES"], env=cluster,
+                          capture_output=True, text=True, check=True).stdout
+    assert "COMPLETED" in acct and "gres/gpu=2" in acct, acct
+    assert "2 processes, 0 loader workers each" in text and "distributed training: 2 processes (gloo)" in text
+    import torch
+
+    meta = torch.load(out / "model.pt", weights_only=False)["meta"]
+    assert meta["pack"]["ranks"] == 2 and meta["epochs_run"] == 2 and meta["arch"] == "resnet18"

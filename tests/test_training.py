@@ -10,15 +10,13 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 import pytest
 import torch
 
 from psdfactory import PsdError
 from psdfactory import config as psd_config
-from psdfactory.manifest import write_shard
 
-from .conftest import make_scene, tiny_config
+from .conftest import split_dataset, tiny_config
 
 SPLITS = ["train"] * 6 + ["val"] * 2 + ["test"] * 2
 
@@ -26,16 +24,8 @@ SPLITS = ["train"] * 6 + ["val"] * 2 + ["test"] * 2
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     """10 tiny scenes at 32 px with a fixed train/val/test split, and their manifest."""
-    cfg = tiny_config(n_scenes=10, count=[15, 25])
-    cfg["render"]["resolution"] = 32
     root = tmp_path_factory.mktemp("res")
-    dirs = [make_scene(cfg, root / "tiny" / "scenes" / f"tiny-{i:06d}", index=i) for i in range(10)]
-    m = root / "tiny" / "manifest"
-    out = m / "scenes" / "shard-00000.parquet"
-    write_shard(dirs, root, {"train": 1.0}, out, m / "particles" / "shard-00000.parquet")
-    t = pq.read_table(out)
-    t = t.set_column(t.schema.get_field_index("split"), "split", pa.array(SPLITS))
-    pq.write_table(t, out)
+    split_dataset(root, SPLITS)
     return root
 
 

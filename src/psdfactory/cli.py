@@ -60,7 +60,7 @@ def cmd_show(a: argparse.Namespace) -> None:
 
 
 def cmd_pack(a: argparse.Namespace) -> None:
-    from .learn.shards import PackSpec, pack
+    from .learn.shards import pack
 
     spec = PackSpec(size=a.size, image_format=a.format, quality=a.quality, masks=not a.no_masks,
                     shard_scenes=a.shard_scenes, seed=a.seed)

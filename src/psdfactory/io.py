@@ -108,7 +108,12 @@ def atomic_dir(path: str | os.PathLike, what: str = "--out-dir", suffix: str = "
         old = path.with_name(stage.name + ".old")
         if path.exists():
             path.rename(old)
-        stage.rename(path)
+        try:
+            stage.rename(path)
+        except BaseException:
+            if old.exists() and not path.exists():  # put the old folder back under its name
+                old.rename(path)
+            raise
         shutil.rmtree(old, ignore_errors=True)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)

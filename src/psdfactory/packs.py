@@ -110,11 +110,24 @@ def epoch_order(shards: list[dict], seed: int, epoch: int) -> list[dict]:
 
 def shard_plan(counts: list[int], rank: int, world: int, worker: int, workers: int) -> tuple[list[int], int]:
     """Which of an epoch's shards (their scene `counts`, in the epoch's order) one loader worker of
-    one rank reads, and how many of their scenes it yields: as many shards as any rank's same
-    worker is dealt at least, times the smallest shard's count. So every rank yields the same
+    one rank reads, and how many of their scenes it yields.
+
+    One rank (`world` 1): all of its shards' scenes. Several: as many shards as any rank's same
+    worker is dealt at least, times the smallest shard's count, so that every rank yields the same
     number of samples (DDP's ranks step in lockstep), none twice, and the same number every epoch
-    whatever the order (a one-cycle schedule knows its steps in advance). With the packer's shards,
-    within one scene of each other in size, at most one scene a shard is left out of an epoch."""
+    whatever the order (a one-cycle schedule counts its steps in advance). What that leaves out of
+    an epoch: up to one scene a shard (the packer's shards are within one scene of each other in
+    size) and, where the shards are not a multiple of ranks x workers, the shards beyond the last
+    full round (`left_out`)."""
     positions = list(range(len(counts)))
+    mine = positions[rank::world][worker::workers]
+    if world == 1:
+        return mine, sum(counts[i] for i in mine)
     least = min(len(positions[r::world][worker::workers]) for r in range(world))
-    return positions[rank::world][worker::workers], least * min(counts, default=0)
+    return mine, least * min(counts, default=0)
+
+
+def left_out(counts: list[int], world: int, workers: int) -> int:
+    """Scenes of a split that no rank reads in an epoch (`shard_plan`), at most."""
+    taken = sum(shard_plan(counts, r, world, w, workers)[1] for r in range(world) for w in range(workers))
+    return sum(counts) - taken

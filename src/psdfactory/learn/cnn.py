@@ -20,7 +20,7 @@ from torch import nn
 from .. import PsdError, __version__
 from ..psd import TARGETS
 from .augment import augment_d4, photometric, random_crop, rescale
-from .data import SceneImages, label_definition, normalise, particles_by_scene, training_rows
+from .data import SceneImages, label_definition, normalise, particles_by_scene, split_summary, training_rows
 from .estimator import Estimator, Reading
 from .fit import FitTask, fingerprint, fit, write_history
 from .models import (
@@ -170,11 +170,13 @@ class CnnRegressor(Estimator):
             tap = FeatureTap(model, params.arch)
             head = CellHead(feature_channels(model, tap, size)).to(device)
             cells = SizeCells(tap, wrap(head, ranks, device), params.size_cells, head)
-        net = wrap(model, ranks, device)  # what steps; `model` inside it is what is saved
+        # what steps; `model` inside it is what is saved. InceptionV3's auxiliary head at aux_loss_weight 0 gets
+        # no gradient, which DDP must be told of
+        net = wrap(model, ranks, device, unused=getattr(model, "aux_logits", False) and not params.aux_loss_weight)
         trained = list(model.parameters()) + (list(cells.module.parameters()) if cells is not None else [])
         opt = torch.optim.Adam(trained, lr=params.lr, weight_decay=params.weight_decay)
-        gen = torch.Generator().manual_seed(params.seed)
-        sched = LrSchedule(opt, params.lr_schedule, params.epochs, len(data.train_loader), params.lr_factor,
+        gen = torch.Generator().manual_seed(params.seed + ranks.rank)  # each rank augments its images its own way
+        sched = LrSchedule(opt, params.lr_schedule, params.epochs, data.steps_per_epoch, params.lr_factor,
                            params.lr_patience)
 
         def validate() -> dict:
@@ -234,6 +236,7 @@ class TrainingData:
     val_loader: torch.utils.data.DataLoader
     stats: TargetStats
     n_train: int  # training images an epoch (on this rank)
+    steps_per_epoch: int  # its batches (a one-cycle schedule's steps)
     definition: dict  # size_definition, weighting
     mm_per_px: float  # the training images' median scale, at their render size
     resolution: int  # their median render size (px)
@@ -253,13 +256,12 @@ def folder_data(params, results_root: Path, size: int, cells: bool, loader_gen: 
         from .size_cells import ScenesWithSizeCodes
 
         fed = ScenesWithSizeCodes(train_ds, particles_by_scene(results_root, params.datasets))
+    train = split_summary(train_rows)
+    loader = torch.utils.data.DataLoader(fed, batch_size=params.batch_size, shuffle=True, generator=loader_gen)
     return TrainingData(
-        torch.utils.data.DataLoader(fed, batch_size=params.batch_size, shuffle=True, generator=loader_gen),
-        torch.utils.data.DataLoader(val_ds, batch_size=params.batch_size),
-        TargetStats.from_targets(train_ds.y), len(train_ds), label_definition(train_rows + val_rows),
-        float(np.median([r["mm_per_px"] for r in train_rows])),
-        int(np.median([r["resolution"] for r in train_rows])),
-        [(r["scene_id"], r["split"], *(r[t] for t in TARGETS)) for r in rows],
+        loader, torch.utils.data.DataLoader(val_ds, batch_size=params.batch_size),
+        TargetStats(**train["target_stats"]), len(train_ds), len(loader), label_definition(train_rows + val_rows),
+        train["mm_per_px"], train["resolution"], [(r["scene_id"], r["split"], *(r[t] for t in TARGETS)) for r in rows],
         f"{len(train_ds)} train / {len(val_ds)} val scenes of {', '.join(params.datasets)}", list(params.datasets))
 
 
@@ -280,13 +282,13 @@ def pack_data(params, pack: Path, size: int, cells: bool, workers: int, ranks) -
                        "with masks, or set train.size_cells: 0")
     train_ds = ShardScenes(pack, "train", ("image", "codes", "targets") if cells else ("image", "targets"),
                            seed=params.seed, num_workers=workers, transform=stack_codes if cells else None)
-    val_ds = ShardScenes(pack, "val", ("image", "targets"), shuffle_buffer=0, world=(0, 1))  # all of it, every rank
+    val_ds = ShardScenes(pack, "val", ("image", "targets"), shuffle_buffer=0, world=(0, 1))  # all of it, each rank
     train = index["splits"]["train"]
     n_val = index["splits"]["val"]["scenes"]
     return TrainingData(
         torch.utils.data.DataLoader(train_ds, batch_size=params.batch_size, num_workers=workers),
         torch.utils.data.DataLoader(val_ds, batch_size=params.batch_size),
-        TargetStats(**train["target_stats"]), len(train_ds),
+        TargetStats(**train["target_stats"]), len(train_ds), train_ds.batches(params.batch_size),
         {"size_definition": index["size_definition"], "weighting": index["weighting"]},
         float(train["mm_per_px"]), int(train["resolution"]),
         [s["sha256"] for split in ("train", "val") for s in index["splits"][split]["shards"]],

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +69,16 @@ def label_definition(rows: list[dict]) -> dict[str, str]:
 
 def targets(rows: list[dict]) -> torch.Tensor:
     return torch.tensor([[r[t] for t in TARGETS] for r in rows], dtype=torch.float32).reshape(-1, len(TARGETS))
+
+
+def split_summary(rows: list[dict]) -> dict:
+    """What training needs of a split before reading it: its scene count, the statistics of its
+    targets (models.TargetStats) and its median scale and render size (a model's meta)."""
+    from .models import TargetStats
+
+    return {"scenes": len(rows), "target_stats": asdict(TargetStats.from_targets(targets(rows))),
+            "mm_per_px": float(np.median([r["mm_per_px"] for r in rows])),
+            "resolution": int(np.median([r["resolution"] for r in rows]))}
 
 
 def to_input(image: np.ndarray, size: int | None) -> torch.Tensor:

@@ -3,8 +3,11 @@
 each process. Without those variables every function here is the single process's no-op.
 
 Each rank trains on its own shards of a pack (`learn.shards.ShardScenes`), gradients are averaged
-across ranks at every step, every rank validates on the whole validation split (so all agree on
-the best epoch, the schedule and early stopping), and rank 0 alone writes files and logs progress.
+across ranks at every step, every rank validates on the whole validation split and all take rank
+0's figures (BatchNorm's running statistics differ a little between ranks), so all agree on the
+best epoch, the schedule and early stopping; rank 0 alone writes files and logs progress. Every
+rank reads the resumable checkpoint rank 0 wrote: the output folder must be on a filesystem all
+of the job's nodes see.
 """
 
 from __future__ import annotations
@@ -81,14 +84,16 @@ def stop(ranks: Ranks) -> None:
             dist.destroy_process_group()
 
 
-def wrap(module: nn.Module, ranks: Ranks, device: torch.device) -> nn.Module:
+def wrap(module: nn.Module, ranks: Ranks, device: torch.device, unused: bool = False) -> nn.Module:
     """`module` as DistributedDataParallel (gradients averaged across ranks in its backward), or
-    itself in a single process. The wrapper trains; the module inside is what is saved."""
+    itself in a single process. The wrapper trains; the module inside is what is saved. `unused`:
+    some parameters get no gradient in a step (DDP then looks for them each step)."""
     if not ranks.distributed:
         return module
     from torch.nn.parallel import DistributedDataParallel
 
-    return DistributedDataParallel(module, device_ids=[device.index] if device.type == "cuda" else None)
+    return DistributedDataParallel(module, device_ids=[device.index] if device.type == "cuda" else None,
+                                   find_unused_parameters=unused)
 
 
 def agree(value, ranks: Ranks):

@@ -23,7 +23,7 @@ from torch import nn
 
 from .. import PsdError
 from ..io import atomic_path
-from .distributed import Ranks, barrier
+from .distributed import Ranks, agree, barrier
 from .runtime import LrSchedule, load_checkpoint, save_model, write_torch
 
 logger = logging.getLogger(__name__)
@@ -144,7 +144,7 @@ def fit(task: FitTask, name: str, epochs: int, patience: int, out_dir: Path, fp:
             with tqdm(total=task.items_per_epoch, desc=f"{name} epoch {epoch + 1}/{epochs}", unit=task.unit,
                       mininterval=2.0, disable=not talk) as bar:
                 train_loss = task.train_epoch(bar)
-            val = task.validate()
+            val = agree(task.validate(), ranks)  # rank 0's: BatchNorm statistics differ a little between ranks
             task.schedule.after_epoch(val["val_loss"])
             row = {"epoch": epoch + 1, "train_loss": train_loss, "val_loss": val["val_loss"],
                    "val_mae_mm": val.get("val_mae_mm", float("nan")), "lr": task.optimizer.param_groups[0]["lr"],

@@ -33,6 +33,7 @@ from ..packs import (
     SPLIT_NAME,
     PackSpec,
     epoch_order,
+    left_out,
     pack_order,
     read_index,
     shard_name,
@@ -41,7 +42,7 @@ from ..packs import (
 )
 from ..psd import TARGETS
 from ..seeding import SPLIT_ORDER
-from .data import label_definition, manifest_rows, to_input
+from .data import label_definition, manifest_rows, split_summary, to_input
 
 logger = logging.getLogger(__name__)
 
@@ -69,9 +70,8 @@ def _png(array: np.ndarray) -> bytes:
 
 def scene_sample(results_root: Path, row: dict, particles: dict | None, spec: PackSpec) -> dict:
     """One scene as a WebDataset sample: {"__key__": scene id, extension: bytes}."""
-    from .data import sizes_px_by_id
     from .instances.draw import resize_mask
-    from .size_cells import resize_codes, size_code_map
+    from .size_cells import scene_codes
 
     image = to_input(read_png(results_root / row["image_path"]), spec.size).permute(1, 2, 0).numpy()
     meta = {k: v for k, v in row.items() if not k.endswith("_path")}
@@ -83,9 +83,8 @@ def scene_sample(results_root: Path, row: dict, particles: dict | None, spec: Pa
             raise PsdError(f"the particle manifest has no rows for {row['scene_id']}; rerun its manifest job")
         mask = read_png(results_root / row["mask_path"])
         sample["mask.png"] = _png(resize_mask(mask, (spec.size, spec.size)).astype(np.uint16))
-        # the dense size task's targets, made as training makes them from the full-size mask (size_cells)
-        codes = size_code_map(mask, sizes_px_by_id(particles, float(row["mm_per_px"])))
-        sample["codes.png"] = _png(resize_codes(torch.from_numpy(codes), spec.size).numpy())
+        # the dense size task's targets, made as training makes them from the full-size mask
+        sample["codes.png"] = _png(scene_codes(mask, particles, float(row["mm_per_px"]), spec.size).numpy())
         table = np.stack([np.asarray(particles[c], dtype=np.float64) for c in PARTICLE_READ_COLUMNS], axis=1)
         buf = io.BytesIO()
         np.save(buf, table, allow_pickle=False)
@@ -93,17 +92,6 @@ def scene_sample(results_root: Path, row: dict, particles: dict | None, spec: Pa
         meta["particle_columns"] = list(PARTICLE_READ_COLUMNS)
     sample["json"] = json.dumps(meta, default=float).encode()
     return sample
-
-
-def split_summary(rows: list[dict]) -> dict:
-    """What training needs of a split before reading it: its scene count, the statistics of its
-    targets (models.TargetStats) and its median scale and render size (a model's meta)."""
-    from .data import targets
-    from .models import TargetStats
-
-    return {"scenes": len(rows), "target_stats": asdict(TargetStats.from_targets(targets(rows))),
-            "mm_per_px": float(np.median([r["mm_per_px"] for r in rows])),
-            "resolution": int(np.median([r["resolution"] for r in rows]))}
 
 
 def _sample_job(args: tuple) -> dict:
@@ -133,8 +121,9 @@ def _write_split(results_root: Path, rows: list[dict], particles: dict, split: s
                 for sample in islice(samples, n):
                     tar.write(sample)
                     bar.update(1)
-            data = (out / name).read_bytes()
-            shards.append({"name": name, "scenes": n, "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()})
+            with open(out / name, "rb") as f:
+                digest = hashlib.file_digest(f, "sha256").hexdigest()
+            shards.append({"name": name, "scenes": n, "bytes": (out / name).stat().st_size, "sha256": digest})
     finally:
         if pool is not None:
             pool.terminate()
@@ -151,20 +140,31 @@ def pack(results_root: Path, datasets: list[str] | tuple[str, ...], out_dir: Pat
     if spec.problems():
         raise PsdError("; ".join(spec.problems()))
     results_root, out_dir = Path(results_root), Path(out_dir)
-    if any(out_dir.resolve().is_relative_to((results_root / d).resolve()) for d in datasets):
-        raise PsdError(f"--out {out_dir} is inside a dataset it packs; write the pack elsewhere")
+    out = out_dir.resolve()
+    for d in [results_root, *(results_root / d for d in datasets)]:
+        inside = out.is_relative_to(d.resolve()) and d != results_root  # a pack may sit in the results root
+        if inside or d.resolve().is_relative_to(out):
+            raise PsdError(f"--out {out_dir} overlaps {d}, which the pack reads (the pack replaces its whole "
+                           "folder): write the pack to a folder of its own")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / INDEX).is_file():
+        raise PsdError(f"--out {out_dir} holds files and is not a pack (no {INDEX}): the pack replaces the whole "
+                       "folder; give a new or empty folder, or an earlier pack")
     by_split: dict[str, list[dict]] = {}
     for ds in datasets:
-        for r in manifest_rows(results_root, ds, tuple(splits) if splits else None):
+        for r in manifest_rows(results_root, ds):
             by_split.setdefault(r["split"], []).append(r)
-    names = [s for s in SPLIT_ORDER if s in by_split] + sorted(s for s in by_split if s not in SPLIT_ORDER)
+    found = [s for s in SPLIT_ORDER if s in by_split] + sorted(s for s in by_split if s not in SPLIT_ORDER)
+    names = [s for s in found if not splits or s in splits]
     bad = [s for s in names if not SPLIT_NAME.match(s)]
     if bad:
         raise PsdError(f"splits {bad}: a split's shards are named after it, so its name may hold letters, digits "
                        "and _ only; rename it in datasets.<name>.split")
     rows = [r for s in names for r in by_split[s]]
-    if not rows:
-        raise PsdError(f"{', '.join(datasets)}: no scenes in the splits {', '.join(splits or ())} to pack")
+    missing = [s for s in (splits or ()) if s not in by_split]
+    if missing or not rows:
+        raise PsdError(f"{', '.join(datasets)}: no scenes in the split{'s' * (len(missing) > 1)} "
+                       f"{', '.join(missing) or 'of the manifests'} to pack (the manifests have: "
+                       f"{', '.join(found) or 'none'})")
     definition = label_definition(rows)
     particles = {}
     if spec.masks:
@@ -223,10 +223,18 @@ class ShardScenes(torch.utils.data.IterableDataset):
         self.transform = transform  # applied to each scene's fields (a module-level function: workers pickle it)
         self.epoch = 0
         rank, size = self._rank()
-        if len(self.shards) < size * max(self.num_workers, 1):
-            raise PsdError(f"{self.dir}: {len(self.shards)} {split} shards for {size} ranks x "
-                           f"{max(self.num_workers, 1)} loader workers; each needs a shard of its own: pack with a "
-                           "smaller --shard-scenes, or use fewer workers")
+        workers = max(self.num_workers, 1)
+        if len(self.shards) < size * workers:
+            raise PsdError(f"{self.dir}: {len(self.shards)} {split} shards for {size} ranks x {workers} loader "
+                           "workers; each needs a shard of its own: pack with a smaller --shard-scenes, or use fewer "
+                           "workers")
+        counts = [s["scenes"] for s in self.shards]
+        lost = left_out(counts, size, workers)
+        if rank == 0 and lost > 0.1 * sum(counts):
+            logger.warning(f"{self.dir}: {lost} of the {sum(counts)} {split} scenes are left out of each epoch: "
+                           f"{len(counts)} shards do not deal evenly to {size} ranks x {workers} loader workers "
+                           f"(pack with --shard-scenes {max(1, sum(counts) // (size * workers))}, or another "
+                           "number of workers)")
 
     def _rank(self) -> tuple[int, int]:
         if self.world is not None:
@@ -245,6 +253,14 @@ class ShardScenes(torch.utils.data.IterableDataset):
         counts = [s["scenes"] for s in epoch_order(self.shards, self.seed, self.epoch)]
         workers = max(self.num_workers, 1)
         return sum(shard_plan(counts, rank, size, w, workers)[1] for w in range(workers))
+
+    def batches(self, batch_size: int) -> int:
+        """DataLoader batches of this rank an epoch: each loader worker ends on a batch of its own
+        (what a one-cycle schedule must count; len(DataLoader) assumes one stream)."""
+        rank, size = self._rank()
+        counts = [s["scenes"] for s in epoch_order(self.shards, self.seed, self.epoch)]
+        workers = max(self.num_workers, 1)
+        return sum(-(-shard_plan(counts, rank, size, w, workers)[1] // batch_size) for w in range(workers))
 
     def _open(self, name: str) -> str:
         if self.url is not None:

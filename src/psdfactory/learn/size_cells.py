@@ -133,6 +133,15 @@ def feature_channels(model: nn.Module, tap: FeatureTap, size: int) -> int:
     return int(tap.features.shape[1])
 
 
+def scene_codes(mask: np.ndarray, particles: dict[str, np.ndarray], mm_per_px: float, size: int) -> torch.Tensor:
+    """A scene's size-code map at the network's input size (uint8 size×size), from its full-size
+    instance mask and its particles' rows (`data.particles_by_scene`): what the dense size task
+    trains on, from scene folders and packs alike."""
+    from .data import sizes_px_by_id
+
+    return resize_codes(torch.from_numpy(size_code_map(mask, sizes_px_by_id(particles, mm_per_px))), size)
+
+
 class ScenesWithSizeCodes(torch.utils.data.Dataset):
     """A `data.SceneImages` whose items carry the scene's size-code map as a fourth channel
     (uint8 4×S×S, so that flips and rotations move image and codes together), and its targets."""
@@ -148,14 +157,12 @@ class ScenesWithSizeCodes(torch.utils.data.Dataset):
     def codes(self, i: int) -> torch.Tensor:
         if i not in self.cache:
             from ..io import read_png
-            from .data import sizes_px_by_id
 
             r = self.scenes.rows[i]
             if r["scene_id"] not in self.particles:
                 raise PsdError(f"the particle manifest has no rows for {r['scene_id']}")
-            mask = read_png(self.scenes.root / r["mask_path"])
-            sizes = sizes_px_by_id(self.particles[r["scene_id"]], float(r["mm_per_px"]))
-            self.cache[i] = resize_codes(torch.from_numpy(size_code_map(mask, sizes)), self.scenes.size)
+            self.cache[i] = scene_codes(read_png(self.scenes.root / r["mask_path"]), self.particles[r["scene_id"]],
+                                        float(r["mm_per_px"]), self.scenes.size)
         return self.cache[i]
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
