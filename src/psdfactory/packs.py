@@ -5,7 +5,8 @@ command line builds its options from it).
 A pack is a folder:
 
 - ``<split>-NNNNNN.tar``: WebDataset shards of at most ``shard_scenes`` scenes, within one scene of
-  each other in size, the scenes of every packed dataset mixed in a seeded order (`pack_order`). A
+  each other in size, the scenes of every packed dataset mixed in a seeded order (`pack_order`:
+  manifest shard by manifest shard, and the scenes of each in an order of their own). A
   scene is the files ``<scene_id>.jpg`` (or ``.png``: the image at ``size`` x ``size`` px, the
   networks' input size), ``<scene_id>.json`` (its manifest row: the targets, the size definition and
   weighting, and ``packed_mm_per_px``, the scale at the packed size), and with masks
@@ -72,13 +73,20 @@ def shard_sizes(n: int, most: int) -> list[int]:
     return [n // k + (i < n % k) for i in range(k)] if n else []
 
 
-def pack_order(rows: list[dict], seed: int) -> list[dict]:
-    """The scenes of a split in the order they are packed: a seeded permutation, so that every
-    shard holds a mix of the packed datasets and of the whole size range."""
+def pack_order(n_blocks: int, seed: int) -> list[int]:
+    """The order a split's manifest shards (blocks) are packed in: a seeded permutation, so that a
+    pack shard holds blocks of every packed dataset and of the whole dataset. The packer reads one
+    block at a time (a million scenes' rows and particle tables do not fit in memory at once)."""
     import numpy as np
 
-    order = np.random.default_rng([int(seed), 0x5EED]).permutation(len(rows))
-    return [rows[i] for i in order]
+    return np.random.default_rng([int(seed), 0x5EED]).permutation(n_blocks).tolist()
+
+
+def block_rows_order(n_rows: int, seed: int, block: int) -> list[int]:
+    """The order the scenes of one block (`block`: its place among all the packed blocks) are packed in."""
+    import numpy as np
+
+    return np.random.default_rng([int(seed), 0x5EED, int(block)]).permutation(n_rows).tolist()
 
 
 def read_index(path: Path) -> dict:

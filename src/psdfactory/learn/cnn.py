@@ -256,7 +256,8 @@ def folder_data(params, results_root: Path, size: int, cells: bool, loader_gen: 
         from .size_cells import ScenesWithSizeCodes
 
         fed = ScenesWithSizeCodes(train_ds, particles_by_scene(results_root, params.datasets))
-    train = split_summary(train_rows)
+    train = split_summary(train_ds.y.numpy(), np.array([r["mm_per_px"] for r in train_rows]),
+                          np.array([r["resolution"] for r in train_rows]))
     loader = torch.utils.data.DataLoader(fed, batch_size=params.batch_size, shuffle=True, generator=loader_gen)
     return TrainingData(
         loader, torch.utils.data.DataLoader(val_ds, batch_size=params.batch_size),

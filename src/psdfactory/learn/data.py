@@ -71,14 +71,14 @@ def targets(rows: list[dict]) -> torch.Tensor:
     return torch.tensor([[r[t] for t in TARGETS] for r in rows], dtype=torch.float32).reshape(-1, len(TARGETS))
 
 
-def split_summary(rows: list[dict]) -> dict:
-    """What training needs of a split before reading it: its scene count, the statistics of its
-    targets (models.TargetStats) and its median scale and render size (a model's meta)."""
+def split_summary(y: np.ndarray, mm_per_px: np.ndarray, resolution: np.ndarray) -> dict:
+    """What training needs of a split before reading it, from its scenes' targets (N x 3, mm),
+    scales and render sizes: the scene count, the statistics of its targets (models.TargetStats)
+    and its median scale and render size (a model's meta)."""
     from .models import TargetStats
 
-    return {"scenes": len(rows), "target_stats": asdict(TargetStats.from_targets(targets(rows))),
-            "mm_per_px": float(np.median([r["mm_per_px"] for r in rows])),
-            "resolution": int(np.median([r["resolution"] for r in rows]))}
+    return {"scenes": len(y), "target_stats": asdict(TargetStats.from_targets(torch.as_tensor(np.asarray(y)))),
+            "mm_per_px": float(np.median(mm_per_px)), "resolution": int(np.median(resolution))}
 
 
 def to_input(image: np.ndarray, size: int | None) -> torch.Tensor:

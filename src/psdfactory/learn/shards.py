@@ -16,7 +16,7 @@ import io
 import json
 import logging
 import random
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from itertools import islice
 from pathlib import Path
 
@@ -24,14 +24,15 @@ import numpy as np
 import torch
 
 from .. import PsdError, __version__
-from ..io import atomic_dir, read_png, write_json
-from ..manifest import PARTICLE_READ_COLUMNS, read_particles
+from ..io import atomic_dir, read_parquet, read_png, write_json
+from ..manifest import PARTICLE_READ_COLUMNS
 from ..packs import (
     FORMAT,
     FORMAT_VERSION,
     INDEX,
     SPLIT_NAME,
     PackSpec,
+    block_rows_order,
     epoch_order,
     left_out,
     pack_order,
@@ -42,7 +43,7 @@ from ..packs import (
 )
 from ..psd import TARGETS
 from ..seeding import SPLIT_ORDER
-from .data import label_definition, manifest_rows, split_summary, to_input
+from .data import label_definition, split_summary, to_input
 
 logger = logging.getLogger(__name__)
 
@@ -99,42 +100,112 @@ def _sample_job(args: tuple) -> dict:
     return scene_sample(results_root, row, particles, spec)
 
 
-def _write_split(results_root: Path, rows: list[dict], particles: dict, split: str, out: Path, spec: PackSpec,
-                 jobs: int, bar) -> list[dict]:
-    """The split's shards in `out`; per shard its name, scene count, bytes and SHA-256."""
+@dataclass(frozen=True)
+class Block:
+    """One manifest shard of a packed dataset: the packer's unit of reading."""
+
+    dataset: str
+    scenes: Path  # <results>/<dataset>/manifest/scenes/shard-NNNNN.parquet
+    particles: Path  # its particle shard (same name under particles/)
+
+
+LIGHT_COLUMNS = ("scene_id", "split", "mm_per_px", "resolution", "size_definition", "weighting", *TARGETS)
+
+
+def manifest_blocks(results_root: Path, datasets: list[str] | tuple[str, ...]) -> list[Block]:
+    blocks = []
+    for ds in datasets:
+        folder = results_root / ds / "manifest" / "scenes"
+        files = sorted(folder.glob("*.parquet"))
+        if not files:
+            raise PsdError(f"no manifest at {folder}; run the workflow first (snakemake -j2)")
+        blocks += [Block(ds, f, results_root / ds / "manifest" / "particles" / f.name) for f in files]
+    return blocks
+
+
+def _block_scenes(results_root: Path, blocks: list[Block], order: list[int], split: str, spec: PackSpec):
+    """The work items of one split's scenes, block by block in `order`, each block's scenes in an
+    order of their own; one block's rows and particles in memory at a time."""
+    import pyarrow.parquet as pq
+
+    from ..manifest import group_by_scene
+
+    for k in order:
+        b = blocks[k]
+        table = read_parquet(b.scenes)
+        rows = [r for r in table.to_pylist() if r["split"] == split]
+        if not rows:
+            continue
+        particles = {}
+        if spec.masks:
+            if not b.particles.is_file():
+                raise PsdError(f"missing {b.particles} (the particles of {b.scenes}); rerun the workflow's manifest "
+                               "jobs")
+            particles = group_by_scene(pq.read_table(b.particles, columns=["scene_id", *PARTICLE_READ_COLUMNS]),
+                                       PARTICLE_READ_COLUMNS)
+        for i in block_rows_order(len(rows), spec.seed, k):
+            yield results_root, rows[i], particles.get(rows[i]["scene_id"]) if spec.masks else None, spec
+
+
+def _write_split(work, n: int, split: str, out: Path, spec: PackSpec, pool, jobs: int, bar) -> list[dict]:
+    """The split's `n` scenes (`work`: their work items, in packing order) as shards in `out`,
+    encoded in `pool` (`jobs` processes) or, without one, here; per shard its name, scene count,
+    bytes and SHA-256."""
     import webdataset as wds
 
     shards = []
-    work = ((results_root, r, particles.get(r["scene_id"]) if spec.masks else None, spec) for r in rows)
-    pool = None
-    if jobs > 1:
-        import multiprocessing
-
-        pool = multiprocessing.get_context("spawn").Pool(jobs)
-        samples = pool.imap(_sample_job, work, chunksize=4)
-    else:
-        samples = map(_sample_job, work)
+    samples = ordered_map(_sample_job, work, pool, jobs) if pool is not None else map(_sample_job, work)
     try:
-        for k, n in enumerate(shard_sizes(len(rows), spec.shard_scenes)):
+        for k, m in enumerate(shard_sizes(n, spec.shard_scenes)):
             name = shard_name(split, k)
             with open(out / name, "wb") as f, wds.TarWriter(f, mtime=0.0, mode=0o644) as tar:
-                for sample in islice(samples, n):
+                for sample in islice(samples, m):
                     tar.write(sample)
                     bar.update(1)
             with open(out / name, "rb") as f:
                 digest = hashlib.file_digest(f, "sha256").hexdigest()
-            shards.append({"name": name, "scenes": n, "bytes": (out / name).stat().st_size, "sha256": digest})
+            shards.append({"name": name, "scenes": m, "bytes": (out / name).stat().st_size, "sha256": digest})
     finally:
-        if pool is not None:
-            pool.terminate()
+        if hasattr(samples, "close"):
+            samples.close()  # stops the worker processes of an interrupted split
     return shards
+
+
+def _one_thread() -> None:
+    torch.set_num_threads(1)  # a pack worker is one of --jobs processes: one core each
+
+
+def ordered_map(fn, items, ex, jobs: int, ahead: int = 4):
+    """fn over `items` in the process pool `ex` of `jobs` processes, results in the items' order,
+    with at most `ahead` x `jobs` items handed out and not yet taken back (multiprocessing.Pool.imap
+    would read the whole input at once: a million scenes' rows and particle tables). A process that
+    dies is an error."""
+    from collections import deque
+    from concurrent.futures.process import BrokenProcessPool
+
+    pending: deque = deque()
+    try:
+        for item in items:
+            pending.append(ex.submit(fn, item))
+            if len(pending) >= ahead * jobs:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    except BrokenProcessPool:
+        raise PsdError(f"a worker process of --jobs {jobs} died (out of memory, or killed); rerun with fewer "
+                       "--jobs") from None
+    finally:
+        for f in pending:
+            f.cancel()
 
 
 def pack(results_root: Path, datasets: list[str] | tuple[str, ...], out_dir: Path, spec: PackSpec,
          splits: tuple[str, ...] | None = None, jobs: int = 1) -> dict:
     """Pack the scenes of `splits` (default: every split of the manifests) of `datasets` (one
     results root's) into WebDataset shards in `out_dir`, replaced as a whole when every shard is
-    written; returns the index."""
+    written; returns the index. Reads the manifests one shard at a time."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
     from tqdm import tqdm
 
     if spec.problems():
@@ -149,42 +220,57 @@ def pack(results_root: Path, datasets: list[str] | tuple[str, ...], out_dir: Pat
     if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / INDEX).is_file():
         raise PsdError(f"--out {out_dir} holds files and is not a pack (no {INDEX}): the pack replaces the whole "
                        "folder; give a new or empty folder, or an earlier pack")
-    by_split: dict[str, list[dict]] = {}
-    for ds in datasets:
-        for r in manifest_rows(results_root, ds):
-            by_split.setdefault(r["split"], []).append(r)
-    found = [s for s in SPLIT_ORDER if s in by_split] + sorted(s for s in by_split if s not in SPLIT_ORDER)
+    blocks = manifest_blocks(results_root, datasets)
+    light = pa.concat_tables([pq.read_table(b.scenes, columns=list(LIGHT_COLUMNS)).append_column(
+        "block", pa.array(np.full(pq.read_metadata(b.scenes).num_rows, k))) for k, b in enumerate(blocks)])
+    split_of = np.asarray(light.column("split").to_pylist())
+    found = [s for s in SPLIT_ORDER if s in split_of] + sorted(set(split_of) - set(SPLIT_ORDER))
     names = [s for s in found if not splits or s in splits]
     bad = [s for s in names if not SPLIT_NAME.match(s)]
     if bad:
         raise PsdError(f"splits {bad}: a split's shards are named after it, so its name may hold letters, digits "
                        "and _ only; rename it in datasets.<name>.split")
-    rows = [r for s in names for r in by_split[s]]
-    missing = [s for s in (splits or ()) if s not in by_split]
-    if missing or not rows:
+    missing = [s for s in (splits or ()) if s not in found]
+    if missing or not names:
         raise PsdError(f"{', '.join(datasets)}: no scenes in the split{'s' * (len(missing) > 1)} "
                        f"{', '.join(missing) or 'of the manifests'} to pack (the manifests have: "
                        f"{', '.join(found) or 'none'})")
-    definition = label_definition(rows)
-    particles = {}
-    if spec.masks:
-        for ds in datasets:
-            particles.update(read_particles(results_root, ds))
-    counts = ", ".join(f"{s} {len(by_split[s])}" for s in names)
-    logger.info(f"packing {len(rows)} scenes of {', '.join(datasets)} ({counts}) "
-                f"at {spec.size} px {spec.image_format} into shards of {spec.shard_scenes} in {out_dir}")
+    chosen = light.filter(pa.array(np.isin(split_of, names)))
+    kinds = zip(chosen.column("size_definition").to_pylist(), chosen.column("weighting").to_pylist(), strict=True)
+    definition = label_definition([{"size_definition": d, "weighting": w} for d, w in set(kinds)])
+    count = {s: int((split_of == s).sum()) for s in names}
+    logger.info(f"packing {chosen.num_rows} scenes of {', '.join(datasets)} "
+                f"({', '.join(f'{s} {count[s]}' for s in names)}) at {spec.size} px {spec.image_format} into shards of "
+                f"{spec.shard_scenes} in {out_dir}")
     index = {"format": FORMAT, "version": FORMAT_VERSION, "psdfactory_version": __version__,
              "datasets": list(datasets), **definition, **asdict(spec), "splits": {}}
+    order = pack_order(len(blocks), spec.seed)
+    pool = None
+    if jobs > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_one_thread)
     with atomic_dir(out_dir, "--out", ".pack") as stage, \
-            tqdm(total=len(rows), desc="pack", unit="scene", mininterval=2.0,
+            tqdm(total=chosen.num_rows, desc="pack", unit="scene", mininterval=2.0,
                  disable=not logger.isEnabledFor(logging.INFO)) as bar:
+        try:
+            shards_of = {s: _write_split(_block_scenes(results_root, blocks, order, s, spec), count[s], s, stage,
+                                         spec, pool, jobs, bar) for s in names}
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
         for s in names:
-            shards = _write_split(results_root, pack_order(by_split[s], spec.seed), particles, s, stage, spec,
-                                  jobs, bar)
-            index["splits"][s] = {**split_summary(by_split[s]), "shards": shards}
+            mine = light.filter(pa.array(split_of == s))
+            shards = shards_of[s]
+            y = np.stack([np.asarray(mine.column(t).to_pylist(), float) for t in TARGETS], axis=1)
+            index["splits"][s] = {**split_summary(y, np.asarray(mine.column("mm_per_px").to_pylist(), float),
+                                                  np.asarray(mine.column("resolution").to_pylist())),
+                                  "shards": shards}
         write_json(stage / INDEX, index)
     total = sum(sh["bytes"] for v in index["splits"].values() for sh in v["shards"])
-    logger.info(f"wrote {out_dir}: {len(rows)} scenes, {total / 1e6:.1f} MB ({total / len(rows) / 1e3:.1f} kB a scene)")
+    logger.info(f"wrote {out_dir}: {chosen.num_rows} scenes, {total / 1e6:.1f} MB "
+                f"({total / chosen.num_rows / 1e3:.1f} kB a scene)")
     return index
 
 
