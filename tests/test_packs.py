@@ -303,6 +303,16 @@ def test_the_pack_command(results, tmp_path, capsys):
     assert main(["pack", "--results", str(results), "--datasets", "tiny", "--quality", "101",
                  "--out", str(tmp_path / "q")]) == 2
     assert "--quality" in capsys.readouterr().err
+    # --verify: every shard against the index; a damaged one is named, and the exit status says so
+    assert main(["pack", "--verify", str(tmp_path / "p")]) == 0
+    assert "3 of 3 shards as the index says" in capsys.readouterr().out  # 2 train shards, 1 val
+    shard = tmp_path / "p" / index["splits"]["train"]["shards"][1]["name"]
+    data = bytearray(shard.read_bytes())
+    data[700] ^= 0xFF  # one byte changed, the size the same
+    shard.write_bytes(bytes(data))
+    assert main(["pack", "--verify", str(tmp_path / "p")]) == 1
+    out = capsys.readouterr().out
+    assert f"{shard}: " in out and "damaged or incomplete" in out and "2 of 3 shards as the index says" in out
 
 
 def test_a_pack_holds_the_size_codes_training_makes_from_the_scene_folders(results, packed):

@@ -59,7 +59,16 @@ def cmd_show(a: argparse.Namespace) -> None:
     logger.info(f"wrote {out}")
 
 
-def cmd_pack(a: argparse.Namespace) -> None:
+def cmd_pack(a: argparse.Namespace) -> int | None:
+    if a.verify:
+        from .packs import verify
+
+        n, problems = verify(Path(a.verify))
+        for line in problems:
+            print(line)
+        print(f"{a.verify}: {n - len(problems)} of {n} shards as the index says"
+              + ("" if not problems else "; copy the others again, or pack again"))
+        return 1 if problems else 0
     from .learn.shards import pack
 
     spec = PackSpec(size=a.size, image_format=a.format, quality=a.quality, masks=not a.no_masks,
@@ -375,6 +384,7 @@ EXAMPLES = {
         "psdfactory pack --results results --datasets train --out packs/train224/   # 224 px JPEG, masks",
         "psdfactory pack --datasets train train_cycles --size 299 --shard-scenes 5000 --jobs 8 \\",
         "    --out packs/incv3/                            # both renderers mixed, for InceptionV3",
+        "psdfactory pack --verify /scratch/packs/train224/   # a copy checked against its index",
     ],
     "show": [
         "psdfactory show                                    # results/train → contact_sheet.png",
@@ -651,7 +661,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=PackSpec.seed, metavar="N",
                    help="the seed of the order scenes are mixed in")
     p.add_argument("--jobs", type=positive_int, default=1, metavar="N", help="scenes encoded in parallel processes")
-    p.add_argument("--out", required=True, metavar="DIR", help="the pack's folder (replaced as a whole)")
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--out", metavar="DIR", help="the pack's folder (replaced as a whole)")
+    what.add_argument("--verify", metavar="DIR", help="instead of packing, check a pack's shards against its "
+                      "index (sizes and SHA-256, e.g. after a copy); exit status 1 when one is damaged or missing")
     p.set_defaults(func=cmd_pack)
 
     p = user("check-config", "It reads the file as a run does (the schema: every key, its type and range; the "

@@ -108,6 +108,29 @@ def read_index(path: Path) -> dict:
     return index
 
 
+def verify(pack_dir: Path) -> tuple[int, list[str]]:
+    """Every shard of a pack checked against its index (size and SHA-256): (shards checked, what is
+    wrong, a line per damaged or missing shard). For a pack copied to another filesystem."""
+    import hashlib
+
+    pack_dir = Path(pack_dir)
+    index = read_index(pack_dir)
+    problems, n = [], 0
+    for split, part in index["splits"].items():
+        for shard in part["shards"]:
+            n += 1
+            path = pack_dir / shard["name"]
+            if not path.is_file():
+                problems.append(f"{path}: missing ({split}, {shard['scenes']} scenes)")
+                continue
+            with open(path, "rb") as f:
+                digest = hashlib.file_digest(f, "sha256").hexdigest()
+            if digest != shard["sha256"]:
+                problems.append(f"{path}: {path.stat().st_size} bytes whose SHA-256 is not the index's "
+                                f"({shard['bytes']} bytes): damaged or incomplete")
+    return n, problems
+
+
 def epoch_order(shards: list[dict], seed: int, epoch: int) -> list[dict]:
     """An epoch's order of a split's shards: the same on every rank and worker (drawn from the
     seed and the epoch alone), another each epoch."""
