@@ -163,6 +163,15 @@ def test_any_webdataset_reader_takes_a_pack(packed):
     assert json.loads(samples[0]["json"])["split"] == "val"
 
 
+def test_shards_are_read_through_a_url_as_from_object_storage(packed):
+    """url="pipe:..." as for `aws s3 cp s3://.../{name} -`: here `cat` stands in for the copy."""
+    from psdfactory.learn.shards import ShardScenes
+
+    local = sorted(m["scene_id"] for (m,) in ShardScenes(packed, "train", fields=("meta",)))
+    piped = ShardScenes(packed, "train", fields=("meta",), url=f"pipe:cat {packed}/{{name}}")
+    assert sorted(m["scene_id"] for (m,) in piped) == local and len(local) == 6
+
+
 def test_ranks_and_loader_workers_read_each_scene_once_and_every_rank_as_many(packed):
     from psdfactory.learn.shards import ShardScenes
 
