@@ -35,6 +35,7 @@ FORMAT_VERSION = 1
 INDEX = "index.json"
 IMAGE_FORMATS = ("jpg", "png")
 SPLIT_NAME = re.compile(r"^[A-Za-z0-9_]+$")  # a split's shards are named after it
+ORDER_STREAM = 0x5EED  # the packing order's random stream, beside the pack's seed
 
 
 @dataclass(frozen=True)
@@ -79,14 +80,14 @@ def pack_order(n_blocks: int, seed: int) -> list[int]:
     block at a time (a million scenes' rows and particle tables do not fit in memory at once)."""
     import numpy as np
 
-    return np.random.default_rng([int(seed), 0x5EED]).permutation(n_blocks).tolist()
+    return np.random.default_rng([int(seed), ORDER_STREAM]).permutation(n_blocks).tolist()
 
 
 def block_rows_order(n_rows: int, seed: int, block: int) -> list[int]:
     """The order the scenes of one block (`block`: its place among all the packed blocks) are packed in."""
     import numpy as np
 
-    return np.random.default_rng([int(seed), 0x5EED, int(block)]).permutation(n_rows).tolist()
+    return np.random.default_rng([int(seed), ORDER_STREAM, int(block)]).permutation(n_rows).tolist()
 
 
 def read_index(path: Path) -> dict:
@@ -108,11 +109,17 @@ def read_index(path: Path) -> dict:
     return index
 
 
+def sha256_of(path: Path) -> str:
+    """A shard's SHA-256 (hex), read in chunks: what the index records and `verify` checks."""
+    import hashlib
+
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
 def verify(pack_dir: Path) -> tuple[int, list[str]]:
     """Every shard of a pack checked against its index (size and SHA-256): (shards checked, what is
     wrong, a line per damaged or missing shard). For a pack copied to another filesystem."""
-    import hashlib
-
     pack_dir = Path(pack_dir)
     index = read_index(pack_dir)
     problems, n = [], 0
@@ -123,9 +130,7 @@ def verify(pack_dir: Path) -> tuple[int, list[str]]:
             if not path.is_file():
                 problems.append(f"{path}: missing ({split}, {shard['scenes']} scenes)")
                 continue
-            with open(path, "rb") as f:
-                digest = hashlib.file_digest(f, "sha256").hexdigest()
-            if digest != shard["sha256"]:
+            if sha256_of(path) != shard["sha256"]:
                 problems.append(f"{path}: {path.stat().st_size} bytes whose SHA-256 is not the index's "
                                 f"({shard['bytes']} bytes): damaged or incomplete")
     return n, problems

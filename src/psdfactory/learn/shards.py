@@ -11,7 +11,6 @@ folder or any URL WebDataset opens (``pipe:aws s3 cp s3://bucket/pack/{name} -``
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 import logging
@@ -37,6 +36,7 @@ from ..packs import (
     left_out,
     pack_order,
     read_index,
+    sha256_of,
     shard_name,
     shard_plan,
     shard_sizes,
@@ -162,9 +162,8 @@ def _write_split(work, n: int, split: str, out: Path, spec: PackSpec, pool, jobs
                 for sample in islice(samples, m):
                     tar.write(sample)
                     bar.update(1)
-            with open(out / name, "rb") as f:
-                digest = hashlib.file_digest(f, "sha256").hexdigest()
-            shards.append({"name": name, "scenes": m, "bytes": (out / name).stat().st_size, "sha256": digest})
+            shards.append({"name": name, "scenes": m, "bytes": (out / name).stat().st_size,
+                           "sha256": sha256_of(out / name)})
     finally:
         if hasattr(samples, "close"):
             samples.close()  # stops the worker processes of an interrupted split
@@ -221,8 +220,7 @@ def pack(results_root: Path, datasets: list[str] | tuple[str, ...], out_dir: Pat
         raise PsdError(f"--out {out_dir} holds files and is not a pack (no {INDEX}): the pack replaces the whole "
                        "folder; give a new or empty folder, or an earlier pack")
     blocks = manifest_blocks(results_root, datasets)
-    light = pa.concat_tables([pq.read_table(b.scenes, columns=list(LIGHT_COLUMNS)).append_column(
-        "block", pa.array(np.full(pq.read_metadata(b.scenes).num_rows, k))) for k, b in enumerate(blocks)])
+    light = pa.concat_tables([pq.read_table(b.scenes, columns=list(LIGHT_COLUMNS)) for b in blocks])
     split_of = np.asarray(light.column("split").to_pylist())
     found = [s for s in SPLIT_ORDER if s in split_of] + sorted(set(split_of) - set(SPLIT_ORDER))
     names = [s for s in found if not splits or s in splits]
@@ -245,28 +243,27 @@ def pack(results_root: Path, datasets: list[str] | tuple[str, ...], out_dir: Pat
     index = {"format": FORMAT, "version": FORMAT_VERSION, "psdfactory_version": __version__,
              "datasets": list(datasets), **definition, **asdict(spec), "splits": {}}
     order = pack_order(len(blocks), spec.seed)
-    pool = None
-    if jobs > 1:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_one_thread)
     with atomic_dir(out_dir, "--out", ".pack") as stage, \
             tqdm(total=chosen.num_rows, desc="pack", unit="scene", mininterval=2.0,
                  disable=not logger.isEnabledFor(logging.INFO)) as bar:
+        pool = None
+        if jobs > 1:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_one_thread)
         try:
-            shards_of = {s: _write_split(_block_scenes(results_root, blocks, order, s, spec), count[s], s, stage,
-                                         spec, pool, jobs, bar) for s in names}
+            for s in names:
+                shards = _write_split(_block_scenes(results_root, blocks, order, s, spec), count[s], s, stage, spec,
+                                      pool, jobs, bar)
+                mine = light.filter(pa.array(split_of == s))
+                y = np.stack([np.asarray(mine.column(t).to_pylist(), float) for t in TARGETS], axis=1)
+                index["splits"][s] = {**split_summary(y, np.asarray(mine.column("mm_per_px").to_pylist(), float),
+                                                      np.asarray(mine.column("resolution").to_pylist())),
+                                      "shards": shards}
         finally:
             if pool is not None:
                 pool.shutdown(wait=True, cancel_futures=True)
-        for s in names:
-            mine = light.filter(pa.array(split_of == s))
-            shards = shards_of[s]
-            y = np.stack([np.asarray(mine.column(t).to_pylist(), float) for t in TARGETS], axis=1)
-            index["splits"][s] = {**split_summary(y, np.asarray(mine.column("mm_per_px").to_pylist(), float),
-                                                  np.asarray(mine.column("resolution").to_pylist())),
-                                  "shards": shards}
         write_json(stage / INDEX, index)
     total = sum(sh["bytes"] for v in index["splits"].values() for sh in v["shards"])
     logger.info(f"wrote {out_dir}: {chosen.num_rows} scenes, {total / 1e6:.1f} MB "
