@@ -235,18 +235,26 @@ def make_particles(family: str, sizes_mm: np.ndarray, rng: np.random.Generator, 
     particle is one of its shapes instead, picked at random: no shape is made or measured per
     scene (the library's sizes, scaled: the same numbers as measuring the scaled shape, as every
     size scales with its shape; not mirrored, which the box search would measure afresh)."""
-    from .sizes import box_and_sieve
-
     if library is not None:
         pick = rng.integers(len(library.shapes), size=len(sizes_mm))
         shapes = [library.shapes[k] for k in pick]
         return finish_all(shapes, np.asarray(sizes_mm, dtype=float), library.dims[pick], library.sieve[pick])
-    if family in HULL_POINTS:  # the same draws as MAKERS', the hulls' bookkeeping done for all at once
-        shapes = convex_meshes([HULL_POINTS[family](rng, params) for _ in sizes_mm])
-    else:
-        shapes = [MAKERS[family](rng, params) for _ in sizes_mm]
-    dims, sieve = box_and_sieve([v for v, _ in shapes])
+    shapes, dims, sieve = made_and_measured(family, len(sizes_mm), rng, params)
     return finish_all(shapes, np.asarray(sizes_mm, dtype=float), dims, sieve)
+
+
+def made_and_measured(family: str, n: int, rng: np.random.Generator,
+                      params: ShapeParams) -> tuple[list[Mesh], np.ndarray, np.ndarray]:
+    """`n` unit shapes of `family` and their minimum box sides (n, 3) and sieve sizes (n,),
+    measured in one batch (``sizes``)."""
+    from .sizes import box_and_sieve
+
+    if family in HULL_POINTS:  # the same draws as MAKERS', the hulls' bookkeeping done for all at once
+        shapes = convex_meshes([HULL_POINTS[family](rng, params) for _ in range(n)])
+    else:
+        shapes = [MAKERS[family](rng, params) for _ in range(n)]
+    dims, sieve = box_and_sieve([v for v, _ in shapes])
+    return shapes, dims, sieve
 
 
 @dataclass(frozen=True)
@@ -263,14 +271,10 @@ def shape_library(family: str, params: ShapeParams, size: int, entropy: tuple[in
     """`size` shapes of a generated family, drawn from the random stream `entropy` and measured in
     one batch (~0.5 s per 1,000 crushed-rock shapes); kept for the process, so that a job making
     many scenes (``scenes_per_job``) makes them once."""
-    from .sizes import box_and_sieve
-
     if family not in HULL_POINTS:
         raise PsdError(f"shape_library: the {family!r} family's shapes are its mesh files; "
                        f"a library is for {', '.join(HULL_POINTS)}")
-    rng = np.random.default_rng(list(entropy))
-    shapes = convex_meshes([HULL_POINTS[family](rng, params) for _ in range(size)])
-    dims, sieve = box_and_sieve([v for v, _ in shapes])
+    shapes, dims, sieve = made_and_measured(family, size, np.random.default_rng(list(entropy)), params)
     for arr in (dims, sieve, *(x for shape in shapes for x in shape)):
         arr.flags.writeable = False  # shared by every scene of the process
     return ShapeLibrary(tuple(shapes), dims, sieve)
