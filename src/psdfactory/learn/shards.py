@@ -331,19 +331,20 @@ class ShardScenes(torch.utils.data.IterableDataset):
         """Another shard order and shuffle (as DistributedSampler.set_epoch); call before each epoch."""
         self.epoch = int(epoch)
 
-    def __len__(self) -> int:
+    def _per_worker(self) -> list[int]:
+        """The scenes each of this rank's loader workers yields this epoch (`shard_plan`)."""
         rank, size = self._rank()
         counts = [s["scenes"] for s in epoch_order(self.shards, self.seed, self.epoch)]
         workers = max(self.num_workers, 1)
-        return sum(shard_plan(counts, rank, size, w, workers)[1] for w in range(workers))
+        return [shard_plan(counts, rank, size, w, workers)[1] for w in range(workers)]
+
+    def __len__(self) -> int:
+        return sum(self._per_worker())
 
     def batches(self, batch_size: int) -> int:
         """DataLoader batches of this rank an epoch: each loader worker ends on a batch of its own
         (what a one-cycle schedule must count; len(DataLoader) assumes one stream)."""
-        rank, size = self._rank()
-        counts = [s["scenes"] for s in epoch_order(self.shards, self.seed, self.epoch)]
-        workers = max(self.num_workers, 1)
-        return sum(-(-shard_plan(counts, rank, size, w, workers)[1] // batch_size) for w in range(workers))
+        return sum(-(-n // batch_size) for n in self._per_worker())
 
     def _open(self, name: str) -> str:
         if self.url is not None:
