@@ -44,10 +44,11 @@ def predict_masks(model: Path, images: list[Path], out: Path, mm_per_px: float |
 
 def fit(found: np.ndarray, ref: np.ndarray, mm_per_px: float) -> dict:
     """The figures of one image (see the module's docstring)."""
+    from psdfactory.deploy.photos import IOU
     from psdfactory.learn.instances.measure import measure_instances
     from psdfactory.learn.instances.scoring import match_off_border
 
-    bm = match_off_border(found, ref, 0.5)
+    bm = match_off_border(found, ref, IOU)
     fa = np.bincount(found.ravel(), minlength=int(found.max()) + 1)
     ra = np.bincount(ref.ravel(), minlength=int(ref.max()) + 1)
     mf, mr = measure_instances(found, mm_per_px), measure_instances(ref, mm_per_px)
