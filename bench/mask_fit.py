@@ -7,7 +7,9 @@ matched to the reference mask at IoU >= 0.5 (the photo scorer's border rule), an
 prints, over the matched grains: the median ratio of found to reference area and of ellipse minor
 axis (the photo sets' size definition), the share of the found grains' pixels that the reference
 calls background (gaps, shadows, table) or another grain, and the share of the image each mask
-leaves as background.
+leaves as background. Then the outline band the reference mask keeps between grains that meet
+(`learn.instances.scoring.outline_band_px`: 0 where its grains touch, as a rendered scene's) and
+the two ratios again against its grains grown back by half of it (`restore_outlines`).
 
 Photo sets (a folder with labels.csv and <stem>_mask.png, as data/photos/real) are read at their
 labels.csv scale, with --auto-scale as the default config's photo set reads them; synthetic test
@@ -43,7 +45,19 @@ def predict_masks(model: Path, images: list[Path], out: Path, mm_per_px: float |
 
 
 def fit(found: np.ndarray, ref: np.ndarray, mm_per_px: float) -> dict:
-    """The figures of one image (see the module's docstring)."""
+    """The figures of one image (see the module's docstring), and the ratios again against the
+    reference grains grown back by half the outline band its mask keeps between them."""
+    from psdfactory.learn.instances.scoring import outline_band_px, restore_outlines
+
+    out = fit_as_drawn(found, ref, mm_per_px)
+    band = outline_band_px(ref)
+    again = fit_as_drawn(found, restore_outlines(ref, band), mm_per_px) if band else out
+    return {**out, "band_px": band, "area_ratio_restored": again["area_ratio"],
+            "minor_ratio_restored": again["minor_ratio"]}
+
+
+def fit_as_drawn(found: np.ndarray, ref: np.ndarray, mm_per_px: float) -> dict:
+    """How the found grains sit on the reference mask as it is."""
     from psdfactory.deploy.photos import IOU
     from psdfactory.learn.instances.measure import measure_instances
     from psdfactory.learn.instances.scoring import match_off_border
@@ -106,7 +120,7 @@ def scenes(model: Path, results: Path, dataset: str, split: str, work: Path) -> 
 
 
 COLUMNS = ("matched", "area_ratio", "minor_ratio", "on_ref_background", "on_other_grain", "ref_background",
-           "found_background")
+           "found_background", "band_px", "area_ratio_restored", "minor_ratio_restored")
 
 
 def table(title: str, rows: list[tuple[str, dict]], each: bool) -> None:

@@ -160,3 +160,14 @@ def test_mask_fit_measures_how_much_fatter_the_found_grains_are():
     assert r["on_ref_background"] == pytest.approx(44 / 144) and r["on_other_grain"] == 0
     assert r["ref_background"] == pytest.approx(1 - 200 / 1600)
     assert r["found_background"] == pytest.approx(1 - 288 / 1600)
+    assert r["band_px"] == 0 and r["minor_ratio_restored"] == r["minor_ratio"]  # two grains far apart: no band
+    # a reference drawn with a 4 px outline band between its 12 px squares; the grains found meet at its middle
+    ref = np.zeros((64, 64), np.int64)
+    found = np.zeros_like(ref)
+    for k, (i, j) in enumerate(np.ndindex(4, 4), start=1):
+        ref[16 * i + 2 : 16 * i + 14, 16 * j + 2 : 16 * j + 14] = k
+        found[16 * i : 16 * i + 16, 16 * j : 16 * j + 16] = k
+    r = fit(found, ref, 0.5)
+    assert r["band_px"] == pytest.approx(4.0) and r["area_ratio"] == pytest.approx(256 / 144)
+    assert r["area_ratio_restored"] == pytest.approx(256 / 244)  # the reference grown back, but its corners' 12 px
+    assert r["minor_ratio"] == pytest.approx(16 / 12, abs=0.01) and 1 < r["minor_ratio_restored"] < 1.05

@@ -288,6 +288,87 @@ def test_size_errors_and_psd_by_hand(tmp_path):
     assert r2["reference_from"] == "mask" and r2["reference_mm"]["d90"] == pytest.approx(b_ref)
 
 
+
+# ---- reference masks with an outline band (photoset outline_band_px) ---------------------------------------
+
+
+def test_neighbour_gaps_and_the_outline_band_by_hand():
+    from psdfactory.learn.instances.scoring import neighbour_gaps, outline_band_px
+
+    # 1 and 2 touch; 2 and 3 leave 3 px between them (cols 10-12); 4 lies 5 px below 1 (rows 9-13)
+    m = rect_mask((30, 30), {1: (0, 8, 0, 4), 2: (0, 8, 5, 9), 3: (0, 8, 13, 20), 4: (14, 20, 0, 4)})
+    pairs, gaps = neighbour_gaps(m)
+    got = dict(zip(map(tuple, pairs.tolist()), gaps.tolist(), strict=True))
+    assert sorted(got) == [(1, 2), (1, 4), (2, 3), (2, 4), (3, 4)]
+    assert (got[(1, 2)], got[(2, 3)], got[(1, 4)]) == (0.0, 3.0, 5.0)
+    assert 26 ** 0.5 <= got[(2, 4)] < 5.5 and got[(3, 4)] > 10  # a slanted gap, √(5² + 1²), reads a little over
+    # a grid of 12 px squares 4 px apart, as an outline class drawn in 0s leaves them: the band is 4 px
+    grid = rect_mask((64, 64), {1 + i * 4 + j: (16 * i, 16 * i + 11, 16 * j, 16 * j + 11)
+                                for i in range(4) for j in range(4)})
+    assert outline_band_px(grid) == pytest.approx(4.0)
+    assert outline_band_px(rect_mask((10, 10), {1: (2, 5, 2, 5)})) == 0.0  # no neighbour
+    assert outline_band_px(np.zeros((8, 8), np.uint16)) == 0.0
+    # sparse grains, far apart for their size, say nothing of a band
+    sparse = rect_mask((60, 60), {1 + i * 3 + j: (20 * i, 20 * i + 5, 20 * j, 20 * j + 5)  # 14 px apart
+                                  for i in range(3) for j in range(3)})
+    assert outline_band_px(sparse) == 0.0
+    touching = rect_mask((20, 20), {k + 1: (0, 19, 5 * k, 5 * k + 4) for k in range(4)})
+    assert outline_band_px(touching) == 0.0
+
+
+def test_restoring_outlines_grows_grains_to_meet_at_the_bands_middle():
+    from psdfactory.learn.instances.scoring import outline_band_px, restore_outlines
+
+    full = rect_mask((64, 64), {1 + i * 4 + j: (16 * i, 16 * i + 15, 16 * j, 16 * j + 15)
+                                for i in range(4) for j in range(4)})  # touching 16 px squares
+    drawn = rect_mask((64, 64), {1 + i * 4 + j: (16 * i + 2, 16 * i + 13, 16 * j + 2, 16 * j + 13)
+                                 for i in range(4) for j in range(4)})  # each eroded 2 px: 4 px bands
+    band = outline_band_px(drawn)
+    assert band == pytest.approx(4.0)
+    back = restore_outlines(drawn, band)
+    assert np.array_equal(back[back > 0], full[back > 0])  # no grain grows into another's place
+    # whole again, but at each square's 4 corners the 3 px farther than 2 px from it (√5, √8): 16 · 4 · 3
+    assert (back != full).sum() == 16 * 4 * 3
+    assert np.array_equal(back[24], full[24]) and np.array_equal(back[:, 40], full[:, 40])
+    assert np.array_equal(restore_outlines(drawn, 0), drawn)
+    with pytest.raises(PsdError, match="outline band"):
+        restore_outlines(drawn, -1)
+
+
+def test_the_scorer_gives_the_figures_again_against_restored_outlines(tmp_path):
+    from psdfactory.deploy.photos import PhotoScorer, read_mask, restored_row
+
+    folder = make_photo_set(tmp_path / "ph", n=1)
+    # the reference drawn 1 px inside each grain: the grains "found" are the full ones
+    ref_full = rect_mask((40, 40), {1: (4, 11, 4, 19), 2: (20, 35, 24, 35)})
+    drawn = rect_mask((40, 40), {1: (5, 10, 5, 18), 2: (21, 34, 25, 34)})
+    from PIL import Image
+
+    Image.fromarray(drawn).save(folder / "a_mask.png")
+    s = photoset.check(validate(photo_config(folder, {"outline_band_px": 2})))["field"]
+    assert s.outline_band == 2
+    photo = s.photos[0]
+    ref = read_mask(photo.mask, photo.size_hw)
+    reading = _fake_reading(ref_full, photo.mm_per_px)
+    as_drawn = PhotoScorer(SimpleNamespace(finds_grains=True), s).add(photo, reading, ref)
+    assert as_drawn["size_error"]["size_definition"]["median_bias"] > 0.1  # found grains look too large
+    rest = restored_row(PhotoScorer(SimpleNamespace(finds_grains=True), s, outlines_restored=True), photo, reading,
+                        ref)
+    assert rest["band_px"] == 2 and rest["detection"]["f1"] == 1.0
+    # grown by 1 px, the reference is the found grains but for their corner pixels (√2 away)
+    assert rest["size_error"]["size_definition"]["median"] < 0.03
+    assert rest["reference_from"] == "mask"  # the CSV's d-values are of the grains as drawn
+    assert all(abs(v) < 0.03 for v in rest["psd_rel_err"].values())
+    auto = photoset.check(validate(photo_config(folder, {"outline_band_px": "auto"})))["field"]
+    rest = restored_row(PhotoScorer(SimpleNamespace(finds_grains=True), auto, outlines_restored=True), photo,
+                        reading, ref)
+    assert rest["band_px"] == 0.0  # the mask's two grains are far apart: no band to read off it
+    # a band without masks describes nothing: refused, naming the key
+    with pytest.raises(PsdError, match="photos.field.outline_band_px: 'auto' describes reference masks"):
+        photoset.check(validate(photo_config(folder, {"outline_band_px": "auto", "masks": None})))
+    with pytest.raises(PsdError, match="photos.field.outline_band_px"):
+        validate(photo_config(folder, {"outline_band_px": -2}))
+
 # ---- the report's photo figures ------------------------------------------------------------------------------
 
 def photo_metrics(arch: str, name: str, finds_grains: bool, f1: float = 0.62) -> dict:
@@ -354,6 +435,19 @@ def test_the_summary_card_gets_a_column_group_per_photo_set_never_ranked_on():
     head, rows = photo_table(photos["resnet18"]["real"])
     assert head == ["photo", "d10 / d50 / d90 (mm)", "reference (mm)", "error d10 / d50 / d90"]  # no grains
     assert rows[0] == ["barton_creek.jpg", "6.26 / 16.7 / 39.8", "5.69 / 15.2 / 36.1", "+10 % / +10 % / +10 %"]
+    # a set that restores its references' outlines: the same rows again against those
+    m = copy.deepcopy(photos["instances"]["real"])
+    for r in m["photos"].values():
+        r["outlines_restored"] = {"band_px": 5.0, "reference_mm": {"d10": 6.0, "d50": 16.0, "d90": 40.0},
+                                  "reference_from": "mask", "psd_rel_err": {"d10": 0.02, "d50": -0.01, "d90": 0.0},
+                                  "n_reference": 340, "detection": {**r["detection"], "f1": 0.7},
+                                  "size_error": r["size_error"]}
+    m["pooled_outlines_restored"] = {**m["pooled"], "detection": {**m["pooled"]["detection"], "f1": 0.71}}
+    head, rows = photo_table(m)
+    assert len(rows) == 6 and rows[2][0] == "all 2 (pooled)"
+    assert rows[3][:5] == ["barton_creek.jpg, outlines restored (band 5.0 px)", "300 / 340", "0.800", "0.667", "0.700"]
+    assert rows[3][-2:] == ["6.00 / 16.0 / 40.0", "+2 % / -1 % / +0 %"]  # the restored reference's d-values
+    assert rows[5][0] == "all 2 (pooled), outlines restored" and rows[5][1] == "600 / 680" and rows[5][4] == "0.710"
 
 
 def test_report_inputs_key_photo_metrics_by_their_folders(tmp_path):
@@ -397,7 +491,7 @@ def test_evaluate_photos_writes_metrics_a_row_and_an_overlay_per_photo(tmp_path,
     from psdfactory.cli import main
 
     folder = make_photo_set(tmp_path / "ph", size=(80, 80))  # 80 px at 0.5 mm/px: 80 px at the model's scale
-    cfg = validate(photo_config(folder))
+    cfg = validate(photo_config(folder, {"outline_band_px": 2}))
     params = json.dumps({"photoset": photo_params(cfg, "field"), "precision": "fp32"})
     out = tmp_path / "eval" / "resnet18" / "photos" / "field"
     assert main(["evaluate-photos", "--params", params, "--model", str(cnn_model), "--out-dir", str(out)]) == 0
@@ -411,6 +505,12 @@ def test_evaluate_photos_writes_metrics_a_row_and_an_overlay_per_photo(tmp_path,
         np.mean([abs(r["psd_rel_err"]["d50"]) for r in m["photos"].values()]))
     rows = list(csv.DictReader(open(out / "photos.csv")))
     assert [r["image"] for r in rows] == ["a.png", "b.png"] and rows[0]["f1"] == "" and rows[0]["overlay"] == "a.png"
+    # the reading again against the reference masks' grains grown by 1 px (the CSV's d-values are of those drawn)
+    rest = a["outlines_restored"]
+    assert rest["band_px"] == 2 and rest["reference_from"] == "mask" and "detection" not in rest
+    assert rest["reference_mm"]["d50"] > 6.0 and m["pooled_outlines_restored"]["psd_abs_rel_err"]["d50"] is not None
+    assert float(rows[0]["outline_band_px"]) == 2 and float(rows[0]["restored_reference_d50_mm"]) == pytest.approx(
+        rest["reference_mm"]["d50"]) and rows[0]["restored_f1"] == ""
     from PIL import Image
 
     with Image.open(out / "overlays" / "b.png") as img:  # the photo under a caption band

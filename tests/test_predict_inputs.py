@@ -369,3 +369,28 @@ def test_predict_refuses_an_unknown_size_definition_in_one_line(capsys):
     with pytest.raises(SystemExit) as e:
         main(["predict", "--model", "m.pt", "--size-definition", "diameter", "a.png"])
     assert e.value.code == 2 and "invalid choice: 'diameter'" in capsys.readouterr().err
+
+
+def test_a_reading_that_is_no_size_distribution_is_named_in_a_warning(folder, model_file, tmp_path, monkeypatch,
+                                                                       caplog):
+    """A regressor far from its training images can read a size <= 0: predict keeps the row and
+    says, naming the image, that these d-values are no measurement."""
+    from psdfactory.cli import main
+    from psdfactory.deploy import predict
+    from psdfactory.learn.cnn import CnnRegressor
+
+    assert predict.not_a_psd(np.array([1.0, 2.0, 3.0])) is None
+    assert "a size <= 0" in predict.not_a_psd(np.array([-8.9, 0.9, 6.5]))
+    assert "a size <= 0" in predict.not_a_psd(np.array([np.nan, 1.0, 2.0]))
+    assert "out of order" in predict.not_a_psd(np.array([3.0, 2.0, 4.0]))
+    outputs = iter([[[-2.0, 1.0, 3.0]], [[1.0, 2.0, 3.0]]])
+    monkeypatch.setattr(predict, "load_predictor",
+                        lambda *a, **k: CnnRegressor(META, lambda x: np.array(next(outputs))))
+    images = many_images(tmp_path / "two", 2)
+    out = tmp_path / "psd.csv"
+    with caplog.at_level("WARNING", logger="psdfactory.deploy.predict"):
+        assert main(["predict", "--model", str(model_file), "--out", str(out), str(images)]) == 0
+    rows = list(csv.DictReader(open(out)))
+    assert [float(r["d10_mm"]) for r in rows] == [-2.0, 1.0] and all(r["error"] == "" for r in rows)
+    warned = [r.message for r in caplog.records if "no measurement" in r.message]
+    assert len(warned) == 1 and "img-0000.png" in warned[0] and "-2 / 1 / 3 mm, a size <= 0" in warned[0]

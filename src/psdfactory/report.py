@@ -577,7 +577,8 @@ def _error_pair(e: dict | None) -> str:
 
 def photo_table(m: dict) -> tuple[list[str], list[list[str]]]:
     """One model on one photo set: a row per photo, then the pooled row (sums, the pooled grains,
-    the mean |relative error| of the d-values). A model that finds no grains: its d-values only."""
+    the mean |relative error| of the d-values); where the set restores its references' outlines,
+    the same rows again against those. A model that finds no grains: its d-values only."""
     grains = bool(m["finds_grains"])
     psd_head = ["d10 / d50 / d90 (mm)", "reference (mm)", "error d10 / d50 / d90"]
     head = ["photo", *(["grains found / reference", "P", "R", "F1", "size error median / p90",
@@ -589,23 +590,33 @@ def photo_table(m: dict) -> tuple[list[str], list[list[str]]]:
     def counts(found, ref) -> str:
         return MISSING if found is None else f"{found} / {MISSING if ref is None else ref}"
 
-    rows = []
-    for name, r in m["photos"].items():
-        det, se = r.get("detection") or {}, r.get("size_error") or {}
-        found = [counts(r.get("n_found_off_border"), r.get("n_reference")),
+    def photo_row(label: str, r: dict, figures: dict) -> list[str]:
+        det, se = figures.get("detection") or {}, figures.get("size_error") or {}
+        found = [counts(r.get("n_found_off_border"), figures.get("n_reference")),
                  *(_fmt(det.get(k), 3) for k in ("precision", "recall", "f1")),
                  _error_pair(se.get("size_definition")), _error_pair(se.get("sieve"))]
-        rows.append([name, *(found if grains else []), _three(r["psd_mm"], mm), _three(r.get("reference_mm"), mm),
-                     _three(r["psd_rel_err"], _signed_pct)])
-    p = m["pooled"]
-    det, se = p.get("detection") or {}, p.get("size_error") or {}
-    n_found = [r.get("n_found_off_border") for r in m["photos"].values()]
-    refs = [r.get("n_reference") for r in m["photos"].values()]
-    found = [counts(sum(n_found) if None not in n_found else None, sum(refs) if None not in refs else None),
-             *(_fmt(det.get(k), 3) for k in ("precision", "recall", "f1")),
-             _error_pair(se.get("size_definition")), _error_pair(se.get("sieve"))]
-    rows.append([f"all {len(m['photos'])} (pooled)", *(found if grains else []), MISSING, MISSING,
-                 "mean |error| " + _three(p["psd_abs_rel_err"], _pct)])
+        return [label, *(found if grains else []), _three(r["psd_mm"], mm), _three(figures.get("reference_mm"), mm),
+                _three(figures["psd_rel_err"], _signed_pct)]
+
+    def pooled_row(label: str, p: dict, figures: list[dict]) -> list[str]:
+        det, se = p.get("detection") or {}, p.get("size_error") or {}
+        n_found = [r.get("n_found_off_border") for r in m["photos"].values()]
+        refs = [f.get("n_reference") for f in figures]
+        found = [counts(sum(n_found) if None not in n_found else None, sum(refs) if None not in refs else None),
+                 *(_fmt(det.get(k), 3) for k in ("precision", "recall", "f1")),
+                 _error_pair(se.get("size_definition")), _error_pair(se.get("sieve"))]
+        return [label, *(found if grains else []), MISSING, MISSING,
+                "mean |error| " + _three(p["psd_abs_rel_err"], _pct)]
+
+    rows = [photo_row(name, r, r) for name, r in m["photos"].items()]
+    rows.append(pooled_row(f"all {len(m['photos'])} (pooled)", m["pooled"], list(m["photos"].values())))
+    # the same against the reference grains grown back by half their outline band (photoset outline_band_px)
+    restored = [(name, r, r["outlines_restored"]) for name, r in m["photos"].items() if r.get("outlines_restored")]
+    rows += [photo_row(f"{name}, outlines restored (band {rest['band_px']:.1f} px)", r, rest)
+             for name, r, rest in restored]
+    if restored and m.get("pooled_outlines_restored"):
+        rows.append(pooled_row(f"all {len(m['photos'])} (pooled), outlines restored", m["pooled_outlines_restored"],
+                               [rest for _, _, rest in restored]))
     return head, rows
 
 

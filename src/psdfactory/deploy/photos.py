@@ -42,7 +42,7 @@ from ..learn.calibration import apply_calibration
 from ..learn.estimator import Estimator, Reading, reading_of
 from ..photoset import Photo, PhotoSet
 from ..psd import NAMES, weighted_percentiles
-from .predict import DEFAULT_TILE_PX, load_predictor, network_scale, read_at_scale, target_size
+from .predict import DEFAULT_TILE_PX, load_predictor, network_scale, not_a_psd, read_at_scale, target_size
 
 logger = logging.getLogger(__name__)
 
@@ -94,10 +94,13 @@ def detection(tp: int, fp: int, fn: int, left_out_pred: int, left_out_true: int)
 
 
 class PhotoScorer:
-    """One model on one photo set: `add` per photo (its figures), `pooled` at the end."""
+    """One model on one photo set: `add` per photo (its figures), `pooled` at the end. With
+    `outlines_restored` the reference masks given to `add` are the set's grown by half their
+    outline band (`learn.instances.scoring.restore_outlines`), and the reference d-values are
+    theirs, not the CSV's (which are of the grains as drawn)."""
 
-    def __init__(self, est: Estimator, photos: PhotoSet):
-        self.est, self.set = est, photos
+    def __init__(self, est: Estimator, photos: PhotoSet, outlines_restored: bool = False):
+        self.est, self.set, self.outlines_restored = est, photos, outlines_restored
         self.measure = MEASURE_OF[photos.size_definition]
         self.counts = np.zeros(5, np.int64)  # tp, fp, fn, left out found, left out reference
         self.pairs: dict[str, list] = {"est": [], "sieve": [], "ref": []}
@@ -107,7 +110,7 @@ class PhotoScorer:
         """The photo's reference d10/d50/d90 and where they come from (its CSV, else its mask)."""
         from ..learn.instances.measure import measure_instances
 
-        if photo.reference_mm is not None:
+        if photo.reference_mm is not None and not self.outlines_restored:
             return np.asarray(photo.reference_mm, float), "csv"
         if ref_mask is None:
             return None, None
@@ -227,7 +230,11 @@ TABLE_COLUMNS = ["image", "mm_per_px", "network_h", "network_w", "n_found", "n_f
                  "tp", "fp", "fn", "left_out_found", "left_out_reference", "precision", "recall", "f1",
                  "size_err_median", "size_err_p90", "sieve_err_median", "sieve_err_p90",
                  *(f"{n}_mm" for n in NAMES), *(f"reference_{n}_mm" for n in NAMES), *(f"rel_err_{n}" for n in NAMES),
-                 "psd_size_definition", *(f"reading_{n}_mm" for n in NAMES), "reading_size_definition", "overlay"]
+                 "psd_size_definition", *(f"reading_{n}_mm" for n in NAMES), "reading_size_definition",
+                 "outline_band_px", "restored_f1", "restored_size_err_median", "restored_size_err_p90",
+                 *(f"restored_reference_{n}_mm" for n in NAMES), *(f"restored_rel_err_{n}" for n in NAMES), "overlay"]
+# the figures given again against the reference with its outlines restored (PhotoScorer's outlines_restored)
+RESTORED_KEYS = ("reference_mm", "reference_from", "psd_rel_err", "n_reference", "detection", "size_error")
 
 
 def table_row(photo: Photo, r: dict, psd_definition: str, reading: str) -> dict:
@@ -245,6 +252,14 @@ def table_row(photo: Photo, r: dict, psd_definition: str, reading: str) -> dict:
     for n in NAMES:
         out.update({f"{n}_mm": r["psd_mm"][n], f"reference_{n}_mm": ref.get(n), f"rel_err_{n}": r["psd_rel_err"][n],
                     f"reading_{n}_mm": r["reading_mm"][n]})
+    rest = r.get("outlines_restored")
+    if rest:
+        se = (rest.get("size_error") or {}).get("size_definition") or {}
+        out.update(outline_band_px=rest["band_px"], restored_f1=(rest.get("detection") or {}).get("f1"),
+                   restored_size_err_median=se.get("median"), restored_size_err_p90=se.get("p90"))
+        for n in NAMES:
+            out.update({f"restored_reference_{n}_mm": (rest.get("reference_mm") or {}).get(n),
+                        f"restored_rel_err_{n}": rest["psd_rel_err"][n]})
     return out
 
 
@@ -264,6 +279,7 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
     own = reading_of(type(est), meta, None)
     psd_definition = photos.size_definition if est.finds_grains else own["size_definition"]
     scorer = PhotoScorer(est, photos)
+    restored = PhotoScorer(est, photos, outlines_restored=True) if photos.outline_band != 0 else None
     overlays = Path(out_dir) / "overlays"
     per_photo, rows = {}, []
     for photo in photos.photos:
@@ -278,8 +294,14 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         found, network_hw = read_at_scale(est, image, size_hw, photo.mm_per_px, DEFAULT_TILE_PX, str(photo.path))
         # its own reading as predict gives it (a calibrated model's correction applied)
         reading = Reading(apply_calibration(meta, own, found.d_mm), grains=found.grains)
+        problem = not_a_psd(reading.d_mm)
+        if problem:
+            logger.warning(f"{arch} on {photos.name}/{photo.name}: read {problem}, not a size distribution: the photo "
+                           "is unlike the images it learnt")
         ref_mask = read_mask(photo.mask, size_hw) if photo.mask is not None else None
         r = scorer.add(photo, reading, ref_mask)
+        if restored is not None and ref_mask is not None:
+            r["outlines_restored"] = restored_row(restored, photo, reading, ref_mask)
         r["network_hw"] = [int(v) for v in network_hw]
         r["mm_per_px"] = photo.mm_per_px
         found = reading.grains.mask if est.finds_grains else None
@@ -297,6 +319,7 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         "compared_at": ("the photo's resolution: the model's instance mask, made at its network scale, resized "
                         "nearest-neighbour to the photo's size; the reference masks as they are"),
         "iou": IOU, "photos": per_photo, "pooled": scorer.pooled(),
+        "pooled_outlines_restored": restored.pooled() if restored is not None else None,
     }
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -306,7 +329,21 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         w.writerows(rows)
     write_json(out_dir / "metrics.json", result)
     logger.info(f"{arch} on {photos.name}, pooled: " + pooled_line(result["pooled"]))
+    if restored is not None:
+        logger.info(f"{arch} on {photos.name}, pooled, outlines restored: "
+                    + pooled_line(result["pooled_outlines_restored"]))
     return result
+
+
+def restored_row(scorer: PhotoScorer, photo: Photo, reading, ref_mask: np.ndarray) -> dict:
+    """A photo's figures against its reference mask with the outline band restored (the set's
+    band, or the mask's own where the set says auto)."""
+    from ..learn.instances.scoring import outline_band_px, restore_outlines
+
+    band = scorer.set.outline_band
+    band = outline_band_px(ref_mask) if band == "auto" else float(band)
+    r = scorer.add(photo, reading, restore_outlines(ref_mask, band))
+    return {"band_px": band, **{k: r[k] for k in RESTORED_KEYS if k in r}}
 
 
 def _pct(v) -> str:
@@ -324,6 +361,12 @@ def summary_line(r: dict, definition: str) -> str:
         if s["n"]:
             text += (f"; size error of {s['n']} matched grains median {100 * s['median']:.1f} %, "
                      f"p90 {100 * s['p90']:.1f} %")
+    rest = r.get("outlines_restored")
+    if rest and "detection" in rest:
+        s = rest["size_error"]["size_definition"]
+        text += (f"; outlines restored (band {rest['band_px']:.1f} px): F1 {rest['detection']['f1']:.3f}, "
+                 f"size error median {_pct(s['median']).lstrip('+')}, d-errors "
+                 + " / ".join(_pct(v) for v in rest["psd_rel_err"].values()))
     return text
 
 

@@ -420,6 +420,19 @@ def describe_model(meta: dict, model_path: Path, mm_per_px: float | None, margin
     return lines
 
 
+def not_a_psd(d_mm: np.ndarray) -> str | None:
+    """What makes a reading no size distribution (a size <= 0 or not finite, d10 <= d50 <= d90
+    broken), in words; None for a plausible one. A regressor's head can give either far from its
+    training images."""
+    d = np.asarray(d_mm, float)
+    text = " / ".join(f"{v:.3g}" for v in d) + " mm"
+    if not np.all(np.isfinite(d)) or np.any(d <= 0):
+        return f"d10/d50/d90 {text}, a size <= 0"
+    if np.any(np.diff(d) < 0):
+        return f"d10/d50/d90 {text}, out of order"
+    return None
+
+
 def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: GrainOutputs | None = None,
                 what: dict | None = None, tile: int | None = DEFAULT_TILE_PX) -> dict:
     """One image → its row; a bad image gives a row whose `error` names the file and the reason.
@@ -437,6 +450,10 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
             grains.write(path, image, size_hw, found.grains)
         d = est.in_definition(found, what["size_definition"], what["weighting"], str(path))
         d = apply_calibration(meta, what, d)  # a calibrated model's correction (psdfactory calibrate)
+        problem = not_a_psd(d)
+        if problem:
+            logger.warning(f"{path}: {meta['arch']} read {problem}: not a size distribution. The image is unlike those "
+                           "the model learnt (material, look, scale): its d-values are no measurement")
         return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, **what, "error": ""}
     except PsdError as e:
         error = str(e)
