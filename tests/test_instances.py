@@ -253,6 +253,68 @@ def test_readout_recovers_a_linear_map_and_orders_the_targets():
     assert (np.diff(p, axis=1) >= 0).all()
 
 
+
+def test_a_readout_names_the_statistics_it_would_extrapolate_from():
+    from psdfactory.learn.readout import DOMAIN_MARGIN, outside_domain
+
+    rng = np.random.default_rng(1)
+    x = rng.uniform(0, 1, size=(30, len(STAT_NAMES)))
+    ro = fit_readout(x, x[:, :3] + [1.0, 2.0, 3.0])
+    lo, hi = np.asarray(ro["lo"]), np.asarray(ro["hi"])
+    assert outside_domain(ro, x[:1]) == []
+    j = STAT_NAMES.index("d50_mm")
+    near, far = x[:1].copy(), x[:1].copy()
+    near[0, j] = hi[ro["features"].index("d50_mm")] + 0.9 * DOMAIN_MARGIN  # the range is < 1 wide: still inside
+    far[0, j] = 5.0
+    assert outside_domain(ro, near) == []
+    (named,) = outside_domain(ro, far)
+    assert named.startswith("d50_mm 5 (fitted ") and f"to {hi[ro['features'].index('d50_mm')]:.3g})" in named
+    low = x[:1].copy()
+    low[0, STAT_NAMES.index("log_density")] = lo[ro["features"].index("log_density")] - 2
+    assert [n.split()[0] for n in outside_domain(ro, low)] == ["log_density"]
+    unused = x[:1].copy()
+    unused[0, STAT_NAMES.index("mm_per_px")] = 50.0  # not a read-out feature
+    assert outside_domain(ro, unused) == []
+    old = {k: v for k, v in ro.items() if k not in ("lo", "hi")}  # fitted before ranges were recorded
+    assert outside_domain(old, far) == []
+
+
+def test_a_readout_corrects_the_visible_grains_no_more_than_it_learnt(tmp_path):
+    """A read-out fitted on 3-6 px grains extrapolates on 40 px grains: its linear fit alone reads a
+    d10 below zero there. Each target is held within the label / visible-size ratios of the scenes
+    it was fitted on, and the statistics it extrapolates from are named."""
+    from psdfactory.learn.instances.estimator import InstanceEstimator
+
+    def grid(side: int, n: int) -> np.ndarray:
+        m = np.zeros((n * (side + 2), n * (side + 2)), np.uint16)
+        for k, (i, j) in enumerate(np.ndindex(n, n), start=1):
+            m[i * (side + 2) + 1 : i * (side + 2) + 1 + side, j * (side + 2) + 1 : j * (side + 2) + 1 + side] = k
+        return m
+
+    base = {"postprocess": DEFAULT_POSTPROCESS, "size_definition": "sieve", "weighting": "number"}
+    x = np.stack([InstanceEstimator(base).result(grid(side, 8), 1.0).stats for side in (3, 4, 5, 6, 7, 8)])
+    seen = x[:, [STAT_NAMES.index(c) for c in ("d10_mm", "d50_mm", "d90_mm")]]
+    # labels that fall behind the grains as they grow: a linear fit crosses zero on larger grains
+    y = seen * np.array([0.8, 1.0, 1.3]) - np.array([0.3, 0.2, 0.1]) * seen**2 / seen.mean(axis=0)
+    ro = fit_readout(x, y, alphas=(1e-6,))
+    ratio = y / seen
+    assert ro["ratio_lo"] == pytest.approx(ratio.min(axis=0).tolist())
+    assert ro["ratio_hi"] == pytest.approx(ratio.max(axis=0).tolist())
+    unheld = {k: v for k, v in ro.items() if k not in ("ratio_lo", "ratio_hi")}  # as fitted before the ratios
+    inside = apply_readout(unheld, x)
+    held = np.clip(inside, seen * ratio.min(axis=0), seen * ratio.max(axis=0))
+    assert apply_readout(ro, x) == pytest.approx(np.sort(held, axis=1))  # where it was fitted: within a hair
+    assert np.abs(held - inside).max() < 0.05 * np.abs(inside).max()
+    est = InstanceEstimator({**base, "readout": ro, "readouts": {"c-axis": ro}})
+    inside = est.result(grid(5, 8), 1.0)
+    assert inside.readout_outside == ()
+    big = est.result(grid(40, 3), 1.0)
+    assert apply_readout(unheld, big.stats[None])[0][0] < 0  # the linear fit alone: a d10 below zero
+    assert any(n.startswith("d50_mm") for n in big.readout_outside)
+    assert big.calibrated == pytest.approx(np.sort(big.raw * np.asarray(ro["ratio_lo"])))  # held at the least
+    assert np.all(big.calibrated > 0)
+    assert est.in_definition(est.reading(big), "c-axis", "number", "big.png") == pytest.approx(big.calibrated)
+
 def test_fully_visible_excludes_edge_and_lower_particles():
     mask = np.zeros((20, 30), dtype=np.uint16)
     mask[5:10, 5:10] = 1  # alone

@@ -24,7 +24,7 @@ from ..learn.calibration import apply_calibration, calibration_note
 from ..learn.data import to_input
 from ..learn.estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS, Estimator, reading_of
 from ..photoset import IMAGE_SUFFIXES
-from ..psd import TARGETS
+from ..psd import SOLID_DEFINITIONS, TARGETS
 
 logger = logging.getLogger(__name__)
 
@@ -449,6 +449,12 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
         if grains is not None:
             grains.write(path, image, size_hw, found.grains)
         d = est.in_definition(found, what["size_definition"], what["weighting"], str(path))
+        outside = getattr(found.grains, "readout_outside", ())
+        if outside and what["size_definition"] in SOLID_DEFINITIONS:
+            logger.warning(f"{path}: its grains lie outside what {meta['arch']}'s read-out was fitted on "
+                           f"({'; '.join(outside[:3])}{'; ...' if len(outside) > 3 else ''}): the read-out "
+                           "extrapolates, held to the correction of the visible grains' sizes it learnt; check the "
+                           "d-values against the grains' own (--size-definition feret-min)")
         d = apply_calibration(meta, what, d)  # a calibrated model's correction (psdfactory calibrate)
         problem = not_a_psd(d)
         if problem:

@@ -11,6 +11,13 @@ from .instances.stats import READOUT_FEATURES, STAT_NAMES
 from .metrics import MIN_SCENES, cross_validated_r2, ridge_fit
 
 READOUT_ALPHAS = (1e-3, 1e-2, 1e-1, 1.0)  # ridge strengths (× N scenes) tried by cross-validation
+# how far beyond the range of a feature it was fitted on (× that range) a read-out reads without a word: farther,
+# its linear fit extrapolates (grains many times the training grains' size: a photo of cobbles under a model of
+# fine rock read a d10 below zero) and `outside_domain` names the features
+DOMAIN_MARGIN = 0.5
+# the visible grains' number-weighted d10/d50/d90 (instance statistics): what the read-out corrects, and what it is
+# held to: each target within the range of label / visible ratios of the scenes it was fitted on (`apply_readout`)
+VISIBLE = ("d10_mm", "d50_mm", "d90_mm")
 
 
 def _impute(x: np.ndarray, fill: np.ndarray) -> np.ndarray:
@@ -30,7 +37,12 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
     columns `features` are used), as plain lists: NaN features imputed with the training means,
     features standardised, the ridge strength (× N) picked by k-fold cross-validated mean R²
     where there are enough scenes."""
-    x, y = readout_columns(x, features), np.asarray(y, float)
+    y = np.asarray(y, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = y / readout_columns(x, VISIBLE)  # how much the labels exceed the visible grains' sizes
+    ratio = np.where(np.isfinite(ratio) & (ratio > 0), ratio, np.nan)
+    bounded = np.isfinite(ratio).any(axis=0).all()
+    x = readout_columns(x, features)
     fill = np.nanmean(np.where(np.isfinite(x), x, np.nan), axis=0) if len(x) else np.zeros(x.shape[1])
     fill = np.where(np.isfinite(fill), fill, 0.0)
     x = _impute(x, fill)
@@ -44,13 +56,40 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
     mu, sd, w = ridge_fit(x, y, alpha)
     return {"features": list(features), "impute": fill.tolist(), "mean": mu.tolist(), "scale": sd.tolist(),
             "weights": w.tolist(), "alpha": float(alpha), "n_scenes": int(len(x)),
+            "lo": x.min(axis=0).tolist() if len(x) else None, "hi": x.max(axis=0).tolist() if len(x) else None,
+            "ratio_lo": np.nanmin(ratio, axis=0).tolist() if bounded else None,
+            "ratio_hi": np.nanmax(ratio, axis=0).tolist() if bounded else None,
             "cv_r2": [float(v) for v in cv[alpha]] if cv else None}
 
 
 def apply_readout(readout: dict, x: np.ndarray) -> np.ndarray:
     """Calibrated d10/d50/d90 (N×3, mm) from instance statistics (N×len(STAT_NAMES)), sorted so
-    d10 ≤ d50 ≤ d90."""
-    x = _impute(readout_columns(x, readout["features"]), np.asarray(readout["impute"], float))
-    z = (x - np.asarray(readout["mean"], float)) / np.asarray(readout["scale"], float)
+    d10 ≤ d50 ≤ d90. Each target is held within the ratios to the visible grains' size (VISIBLE)
+    the labels had on the scenes it was fitted on: it corrects a reading as much as it did there
+    and no more, so that where the linear fit extrapolates (`outside_domain`) it neither reads a
+    size below zero nor departs from the grains in view by more than it ever learnt. A read-out
+    fitted before the ratios were recorded is not held."""
+    x = np.array(x, dtype=float, ndmin=2)
+    f = _impute(readout_columns(x, readout["features"]), np.asarray(readout["impute"], float))
+    z = (f - np.asarray(readout["mean"], float)) / np.asarray(readout["scale"], float)
     p = np.column_stack([np.ones(len(z)), z]) @ np.asarray(readout["weights"], float)
+    if readout.get("ratio_lo") is not None:
+        seen = readout_columns(x, VISIBLE)
+        ok = np.isfinite(seen) & (seen > 0)
+        lo, hi = seen * np.asarray(readout["ratio_lo"], float), seen * np.asarray(readout["ratio_hi"], float)
+        p = np.where(ok, np.clip(p, lo, hi), p)
     return np.sort(p, axis=1)
+
+
+def outside_domain(readout: dict, x: np.ndarray) -> list[str]:
+    """The features of one image's statistics (1 x len(STAT_NAMES)) that lie farther than
+    DOMAIN_MARGIN x the range the read-out was fitted on beyond that range, each as
+    "name value (fitted lo-hi)": where the read-out would extrapolate. Empty inside it, and for a
+    read-out fitted before ranges were recorded."""
+    if readout.get("lo") is None or readout.get("hi") is None:
+        return []
+    v = _impute(readout_columns(x, readout["features"]), np.asarray(readout["impute"], float))[0]
+    lo, hi = np.asarray(readout["lo"], float), np.asarray(readout["hi"], float)
+    pad = DOMAIN_MARGIN * (hi - lo)
+    out = (v < lo - pad) | (v > hi + pad)
+    return [f"{f} {v[j]:.3g} (fitted {lo[j]:.3g} to {hi[j]:.3g})" for j, f in enumerate(readout["features"]) if out[j]]

@@ -19,7 +19,7 @@ from ... import PsdError
 from ...psd import FOOTPRINT_DEFINITIONS, GRAIN_WEIGHTINGS, NAMES, SOLID_DEFINITIONS, TARGETS, weighted_percentiles
 from ..augment import TTA_VIEWS, unview, view
 from ..estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS, DatasetScorer, Estimator, Reading, model_definition
-from ..readout import apply_readout
+from ..readout import apply_readout, outside_domain
 from . import ARCH
 from .measure import DEFAULT_SIEVE_METHOD, SIEVE_METHODS, InstanceMeasurements, measure_instances, sieve_size
 from .net import DECODER, FULL_RES, RECEPTIVE_RADIUS_PX, TRUNK, InstanceMaps, net_from_meta
@@ -45,6 +45,8 @@ class InstanceResult:
     sizes_mm: np.ndarray  # sieve-size estimate per instance, in the order of measurements.ids
     psd: dict | None = field(default=None)  # psd_from_instances of the same instances
     size_map_px: np.ndarray | None = None  # the network's size map, decoded to pixels (None without one)
+    # the statistics the read-out extrapolates from (readout.outside_domain; its reading is held, apply_readout)
+    readout_outside: tuple[str, ...] = ()
 
 
 def averaged_maps(maps_fn, x: torch.Tensor, views: tuple[tuple[int, bool], ...]) -> np.ndarray:
@@ -184,7 +186,8 @@ class InstanceEstimator(Estimator):
         psd = raw_psd(m, self.method)
         raw = np.array([psd[k] for k in TARGETS]) if psd else np.full(3, np.nan)
         cal = apply_readout(self.readout, stats)[0] if self.readout else raw.copy()
-        return InstanceResult(mask, m, stats, raw, cal, sieve_size(m, self.method), psd, size_px)
+        outside = tuple(outside_domain(self.readout, stats[None])) if self.readout else ()
+        return InstanceResult(mask, m, stats, raw, cal, sieve_size(m, self.method), psd, size_px, outside)
 
     def analyse(self, images_u8: torch.Tensor, mm_per_px: float | list[float]) -> list[InstanceResult]:
         """uint8 N×3×H×W → one result per image (mm per pixel: one for all, or one each)."""
