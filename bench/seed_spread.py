@@ -231,15 +231,22 @@ def markdown(summary: dict) -> str:
                          f"{m['d10']['r2']['n']} | " + " | ".join(r2 + rel) + " |")
     if summary.get("photos"):
         lines += ["", "Photos: grain detection F1 at IoU ≥ 0.5 (grains cut by the border left out; grain finders "
-                  "only) and the error pred − ref of d10/d50/d90 against the reference grains, in mm and "
+                  "only), the median |error| of the matched grains' size (as drawn → against the reference "
+                  "grains grown back by half their outline band, where the photo set declares one) and the "
+                  "error pred − ref of d10/d50/d90 against the reference grains, in mm and "
                   "relative to ref, in the reference's size definition (a CNN reads its own).", "",
-                  "| model | photo | seeds | F1 | error d10: mm, rel. | error d50 | error d90 |",
-                  "|---|---|---|---|---|---|---|"]
+                  "| model | photo | seeds | F1 | matched grains' size error, median | error d10: mm, rel. | "
+                  "error d50 | error d90 |",
+                  "|---|---|---|---|---|---|---|---|"]
         for arch, per_photo in summary["photos"].items():
             for photo, m in per_photo.items():
                 f1 = cell(m["f1"]) if m.get("f1") else "—"
+                size = cell(m["size_err"], 100, 1, " %") if m.get("size_err") else "—"
+                if m.get("f1_restored"):  # the photo set's outline_band_px: as drawn → outlines restored
+                    f1 += f" → {cell(m['f1_restored'])}"
+                    size += f" → {cell(m['size_err_restored'], 100, 1, ' %')}"
                 rel = [f"{cell(m[n + '_mm'], digits=1, unit=' mm')}, {cell(m[n], 100, 0, ' %')}" for n in NAMES]
-                lines.append(f"| {ARCH_LABELS.get(arch, arch)} | {photo} | {m['d50']['n']} | {f1} | "
+                lines.append(f"| {ARCH_LABELS.get(arch, arch)} | {photo} | {m['d50']['n']} | {f1} | {size} | "
                              + " | ".join(rel) + " |")
     lines += ["", "Training minutes per run (mean over seeds): "
               + ", ".join(f"{ARCH_LABELS.get(a, a)} {t:.1f}" for a, t in summary["train_minutes"].items()) + "."]
@@ -272,10 +279,16 @@ def write_summary(out: Path, meta: dict, archs: list[str], seeds: list[int], dat
         for s in seeds:
             for pset, pm in metrics.get(arch, {}).get(s, {}).get("photos", {}).items():
                 for photo, r in pm["photos"].items():
-                    row = per_photo.setdefault(f"{pset}/{photo}", {"f1": [], **{n: [] for n in NAMES},
-                                                                    **{n + "_mm": [] for n in NAMES}})
+                    row = per_photo.setdefault(f"{pset}/{photo}", {
+                        "f1": [], "f1_restored": [], "size_err": [], "size_err_restored": [],
+                        **{n: [] for n in NAMES}, **{n + "_mm": [] for n in NAMES}})
                     if pm.get("finds_grains") and r.get("detection"):
                         row["f1"].append(r["detection"]["f1"])
+                        row["size_err"].append(r["size_error"]["size_definition"]["median"])
+                        rest = r.get("outlines_restored") or {}
+                        if rest.get("detection"):  # against the reference grains grown back by half their band
+                            row["f1_restored"].append(rest["detection"]["f1"])
+                            row["size_err_restored"].append(rest["size_error"]["size_definition"]["median"])
                     for n in NAMES:
                         row[n].append(r["psd_rel_err"][n])
                         row[n + "_mm"].append(r["psd_mm"][n] - r["reference_mm"][n])

@@ -171,3 +171,25 @@ def test_mask_fit_measures_how_much_fatter_the_found_grains_are():
     assert r["band_px"] == pytest.approx(4.0) and r["area_ratio"] == pytest.approx(256 / 144)
     assert r["area_ratio_restored"] == pytest.approx(256 / 244)  # the reference grown back, but its corners' 12 px
     assert r["minor_ratio"] == pytest.approx(16 / 12, abs=0.01) and 1 < r["minor_ratio_restored"] < 1.05
+
+
+def test_seed_spread_gives_the_photo_figures_as_drawn_and_with_outlines_restored(tmp_path):
+    """bench/seed_spread.py's photo table: F1 and the matched grains' size error over the seeds, as
+    drawn → against the reference grains grown back by half their outline band."""
+    seed_spread = bench_module("seed_spread")
+
+    def photo_run(f1: float, err: float, f1_r: float, err_r: float) -> dict:
+        ref = {"d10": 5.0, "d50": 10.0, "d90": 20.0}
+        r = {"detection": {"f1": f1}, "size_error": {"size_definition": {"median": err}},
+             "outlines_restored": {"detection": {"f1": f1_r}, "size_error": {"size_definition": {"median": err_r}}},
+             "psd_rel_err": dict.fromkeys(ref, 0.1), "psd_mm": {k: v * 1.1 for k, v in ref.items()},
+             "reference_mm": ref}
+        return {"photos": {"real": {"finds_grains": True, "photos": {"a.jpg": r}}}, "datasets": {}}
+
+    metrics = {"instances": {42: photo_run(0.70, 0.136, 0.68, 0.077), 7: photo_run(0.72, 0.120, 0.70, 0.061)}}
+    md = seed_spread.write_summary(tmp_path, {"command": "x", "commit": "abc", "cpu": "cpu"}, ["instances"], [42, 7],
+                                   [], {}, metrics, {"instances": [4.0, 5.0]}, True)
+    row = next(line for line in md.splitlines() if "real/a.jpg" in line)
+    assert "| 2 | 0.71 ± 0.01 → 0.69 ± 0.01 | 12.8 ± 0.8 % → 6.9 ± 0.8 % |" in row, row
+    summary = json.loads((tmp_path / "spread.json").read_text())
+    assert summary["photos"]["instances"]["real/a.jpg"]["size_err_restored"]["n"] == 2

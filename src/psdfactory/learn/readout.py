@@ -36,7 +36,9 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
     """A ridge read-out of the labels (N×3) from instance statistics (N×len(STAT_NAMES); the
     columns `features` are used), as plain lists: NaN features imputed with the training means,
     features standardised, the ridge strength (× N) picked by k-fold cross-validated mean R²
-    where there are enough scenes."""
+    where there are enough scenes. It records the range of each feature (`lo`, `hi`:
+    `outside_domain`) and of each label's ratio to the visible grains' size (`ratio_lo`,
+    `ratio_hi`: `apply_readout` holds a reading within it) over these scenes."""
     y = np.asarray(y, float)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = y / readout_columns(x, VISIBLE)  # how much the labels exceed the visible grains' sizes
