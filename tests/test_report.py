@@ -481,3 +481,11 @@ def test_paper_tables_put_each_cnn_beside_the_papers_table_2_and_3():
     assert rows3[0][:3] == ["resnet50", f"{TABLE3['resnet50']['cpu_fps']:.2f}", f"{TABLE3['resnet50']['gpu_fps']:.2f}"]
     assert rows3[0][4] == "12.5" and rows3[1][1] == "—"
     assert "933 renders" in note and "test CPU" in note
+
+
+def test_a_bar_inside_a_markdown_cell_is_escaped_not_a_column():
+    from psdfactory.report import _md_table
+
+    md = _md_table(["photo", "error"], [["all 2", "mean |error| 60 %"]]).splitlines()
+    assert md[2] == "| all 2 | mean \\|error\\| 60 % |"
+    assert all(line.replace("\\|", "").count("|") == 3 for line in md)  # two columns on every line

@@ -721,9 +721,11 @@ def compact_instance_table(metrics: dict[str, dict], datasets: list[str]) -> tup
 
 
 def _md_table(head, rows) -> str:
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
-    return "\n".join(lines)
+    """A Markdown table; a "|" inside a cell (e.g. "mean |error|") is escaped, not a column break."""
+    def line(cells) -> str:
+        return "| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |"
+
+    return "\n".join([line(head), "|" + "---|" * len(head), *map(line, rows)])
 
 
 _NUMBER = re.compile(r"^([-+−]?[\d.]|—$)")  # a figure (right-aligned), not a name or a text
