@@ -47,22 +47,23 @@ def predict_masks(model: Path, images: list[Path], out: Path, mm_per_px: float |
 def fit(found: np.ndarray, ref: np.ndarray, mm_per_px: float) -> dict:
     """The figures of one image (see the module's docstring), and the ratios again against the
     reference grains grown back by half the outline band its mask keeps between them."""
-    from psdfactory.learn.instances.scoring import outline_band_px, restore_outlines
+    from psdfactory.learn.instances.scoring import border_ids, outline_band_px, restore_outlines
 
     out = fit_as_drawn(found, ref, mm_per_px)
     band = outline_band_px(ref)
-    again = fit_as_drawn(found, restore_outlines(ref, band), mm_per_px) if band else out
+    again = fit_as_drawn(found, restore_outlines(ref, band), mm_per_px, border_ids(ref)) if band else out
     return {**out, "band_px": band, "area_ratio_restored": again["area_ratio"],
             "minor_ratio_restored": again["minor_ratio"]}
 
 
-def fit_as_drawn(found: np.ndarray, ref: np.ndarray, mm_per_px: float) -> dict:
-    """How the found grains sit on the reference mask as it is."""
+def fit_as_drawn(found: np.ndarray, ref: np.ndarray, mm_per_px: float, ref_on_border=None) -> dict:
+    """How the found grains sit on the reference mask as it is (`ref_on_border`: the reference
+    grains the border rule leaves out, where decided on another copy of it)."""
     from psdfactory.deploy.photos import IOU
     from psdfactory.learn.instances.measure import measure_instances
     from psdfactory.learn.instances.scoring import match_off_border
 
-    bm = match_off_border(found, ref, IOU)
+    bm = match_off_border(found, ref, IOU, true_on_border=ref_on_border)
     fa = np.bincount(found.ravel(), minlength=int(found.max()) + 1)
     ra = np.bincount(ref.ravel(), minlength=int(ref.max()) + 1)
     mf, mr = measure_instances(found, mm_per_px), measure_instances(ref, mm_per_px)

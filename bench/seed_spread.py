@@ -244,7 +244,7 @@ def markdown(summary: dict) -> str:
                 size = cell(m["size_err"], 100, 1, " %") if m.get("size_err") else "—"
                 if m.get("f1_restored"):  # the photo set's outline_band_px: as drawn → outlines restored
                     f1 += f" → {cell(m['f1_restored'])}"
-                    size += f" → {cell(m['size_err_restored'], 100, 1, ' %')}"
+                    size += " → " + (cell(m["size_err_restored"], 100, 1, " %") if m.get("size_err_restored") else "—")
                 rel = [f"{cell(m[n + '_mm'], digits=1, unit=' mm')}, {cell(m[n], 100, 0, ' %')}" for n in NAMES]
                 lines.append(f"| {ARCH_LABELS.get(arch, arch)} | {photo} | {m['d50']['n']} | {f1} | {size} | "
                              + " | ".join(rel) + " |")
@@ -284,11 +284,13 @@ def write_summary(out: Path, meta: dict, archs: list[str], seeds: list[int], dat
                         **{n: [] for n in NAMES}, **{n + "_mm": [] for n in NAMES}})
                     if pm.get("finds_grains") and r.get("detection"):
                         row["f1"].append(r["detection"]["f1"])
-                        row["size_err"].append(r["size_error"]["size_definition"]["median"])
                         rest = r.get("outlines_restored") or {}
                         if rest.get("detection"):  # against the reference grains grown back by half their band
                             row["f1_restored"].append(rest["detection"]["f1"])
-                            row["size_err_restored"].append(rest["size_error"]["size_definition"]["median"])
+                        for key, got in (("size_err", r), ("size_err_restored", rest)):
+                            median = ((got.get("size_error") or {}).get("size_definition") or {}).get("median")
+                            if median is not None:  # None: no grain matched
+                                row[key].append(median)
                     for n in NAMES:
                         row[n].append(r["psd_rel_err"][n])
                         row[n + "_mm"].append(r["psd_mm"][n] - r["reference_mm"][n])

@@ -169,7 +169,7 @@ def test_mask_fit_measures_how_much_fatter_the_found_grains_are():
         found[16 * i : 16 * i + 16, 16 * j : 16 * j + 16] = k
     r = fit(found, ref, 0.5)
     assert r["band_px"] == pytest.approx(4.0) and r["area_ratio"] == pytest.approx(256 / 144)
-    assert r["area_ratio_restored"] == pytest.approx(256 / 244)  # the reference grown back, but its corners' 12 px
+    assert r["area_ratio_restored"] == pytest.approx(256 / 252)  # grown back by 2.5 px, but its corners' √8 px
     assert r["minor_ratio"] == pytest.approx(16 / 12, abs=0.01) and 1 < r["minor_ratio_restored"] < 1.05
 
 
@@ -193,3 +193,13 @@ def test_seed_spread_gives_the_photo_figures_as_drawn_and_with_outlines_restored
     assert "| 2 | 0.71 ± 0.01 → 0.69 ± 0.01 | 12.8 ± 0.8 % → 6.9 ± 0.8 % |" in row, row
     summary = json.loads((tmp_path / "spread.json").read_text())
     assert summary["photos"]["instances"]["real/a.jpg"]["size_err_restored"]["n"] == 2
+    # a run that matched no grain (size error None) counts in the F1, not in the size error
+    none = photo_run(0.02, 0.1, 0.02, 0.1)
+    row = none["photos"]["real"]["photos"]["a.jpg"]
+    for r in (row, row["outlines_restored"]):
+        r["size_error"]["size_definition"]["median"] = None
+    metrics["instances"][11] = none
+    md = seed_spread.write_summary(tmp_path, {"command": "x", "commit": "abc", "cpu": "cpu"}, ["instances"],
+                                   [42, 7, 11], [], {}, metrics, {"instances": [4.0, 5.0, 4.0]}, True)
+    row = next(line for line in md.splitlines() if "real/a.jpg" in line)
+    assert "| 3 | 0.48 ± 0.35 → 0.47 ± 0.34 | 12.8 ± 0.8 % → 6.9 ± 0.8 % |" in row, row

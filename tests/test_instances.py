@@ -262,11 +262,13 @@ def test_a_readout_names_the_statistics_it_would_extrapolate_from():
     ro = fit_readout(x, x[:, :3] + [1.0, 2.0, 3.0])
     lo, hi = np.asarray(ro["lo"]), np.asarray(ro["hi"])
     assert outside_domain(ro, x[:1]) == []
-    j = STAT_NAMES.index("d50_mm")
-    near, far = x[:1].copy(), x[:1].copy()
-    near[0, j] = hi[ro["features"].index("d50_mm")] + 0.9 * DOMAIN_MARGIN  # the range is < 1 wide: still inside
+    j, k = STAT_NAMES.index("d50_mm"), ro["features"].index("d50_mm")
+    near, beyond, far = x[:1].copy(), x[:1].copy(), x[:1].copy()
+    near[0, j] = hi[k] + 0.9 * DOMAIN_MARGIN * (hi[k] - lo[k])  # within the margin: still inside
+    beyond[0, j] = hi[k] + 1.1 * DOMAIN_MARGIN * (hi[k] - lo[k])
     far[0, j] = 5.0
     assert outside_domain(ro, near) == []
+    assert [n.split()[0] for n in outside_domain(ro, beyond)] == ["d50_mm"]
     (named,) = outside_domain(ro, far)
     assert named.startswith("d50_mm 5 (fitted ") and f"to {hi[ro['features'].index('d50_mm')]:.3g})" in named
     low = x[:1].copy()
@@ -277,6 +279,22 @@ def test_a_readout_names_the_statistics_it_would_extrapolate_from():
     assert outside_domain(ro, unused) == []
     old = {k: v for k, v in ro.items() if k not in ("lo", "hi")}  # fitted before ranges were recorded
     assert outside_domain(old, far) == []
+    flat = {**ro, "hi": list(ro["lo"])}  # a feature constant where it was fitted: no range to judge by
+    assert outside_domain(flat, far) == []
+    # a model's meta: the new keys are optional, and checked where present
+    from psdfactory.learn.instances.estimator import _one_readout_problems
+
+    def nums(v, n):
+        return isinstance(v, list) and len(v) == n and all(isinstance(e, (int, float)) for e in v)
+
+    assert _one_readout_problems("readout", ro, ["size"], nums) == []
+    assert _one_readout_problems("readout", old, ["size"], nums) == []
+    assert _one_readout_problems("readout", {**ro, "lo": [1.0]}, ["size"], nums) == [
+        f"readout.lo must be {len(ro['features'])} numbers or absent"]
+    assert _one_readout_problems("readout", {**ro, "ratio_lo": [0.5, -1.0, 0.9]}, ["size"], nums) == [
+        "readout.ratio_lo and ratio_hi must be > 0"]
+    assert _one_readout_problems("readout", {**ro, "ratio_hi": None}, ["size"], nums) == [
+        "readout.ratio_lo and ratio_hi go together"]
 
 
 def test_a_readout_corrects_the_visible_grains_no_more_than_it_learnt(tmp_path):

@@ -327,41 +327,53 @@ def test_restoring_outlines_grows_grains_to_meet_at_the_bands_middle():
     assert band == pytest.approx(4.0)
     back = restore_outlines(drawn, band)
     assert np.array_equal(back[back > 0], full[back > 0])  # no grain grows into another's place
-    # whole again, but at each square's 4 corners the 3 px farther than 2 px from it (√5, √8): 16 · 4 · 3
-    assert (back != full).sum() == 16 * 4 * 3
+    # grown by (4 + 1) / 2 px: whole again, but at each square's 4 corners the pixel √8 px from it
+    assert (back != full).sum() == 16 * 4
     assert np.array_equal(back[24], full[24]) and np.array_equal(back[:, 40], full[:, 40])
     assert np.array_equal(restore_outlines(drawn, 0), drawn)
+    # an odd band (5 px): its middle pixel goes to one of the two grains, none is left between them
+    odd = rect_mask((64, 64), {1 + i * 4 + j: (16 * i + 2, 16 * i + 12, 16 * j + 2, 16 * j + 12)
+                               for i in range(4) for j in range(4)})
+    assert outline_band_px(odd) == pytest.approx(5.0)
+    grown = restore_outlines(odd, 5.0)
+    assert (grown[7] > 0).all() and (grown[:, 39] > 0).all()  # rows and columns through the grains: no gap
     with pytest.raises(PsdError, match="outline band"):
         restore_outlines(drawn, -1)
 
 
 def test_the_scorer_gives_the_figures_again_against_restored_outlines(tmp_path):
-    from psdfactory.deploy.photos import PhotoScorer, read_mask, restored_row
+    from psdfactory.deploy.photos import PhotoScorer, read_mask
 
     folder = make_photo_set(tmp_path / "ph", n=1)
     # the reference drawn 1 px inside each grain: the grains "found" are the full ones
-    ref_full = rect_mask((40, 40), {1: (4, 11, 4, 19), 2: (20, 35, 24, 35)})
-    drawn = rect_mask((40, 40), {1: (5, 10, 5, 18), 2: (21, 34, 25, 34)})
+    # grain 3 is drawn 1 px from the top border: grown back it reaches it, and is still a reference grain
+    ref_full = rect_mask((40, 40), {1: (4, 11, 4, 19), 2: (20, 35, 24, 35), 3: (0, 3, 24, 36)})
+    drawn = rect_mask((40, 40), {1: (5, 10, 5, 18), 2: (21, 34, 25, 34), 3: (1, 2, 25, 35)})
     from PIL import Image
 
     Image.fromarray(drawn).save(folder / "a_mask.png")
     s = photoset.check(validate(photo_config(folder, {"outline_band_px": 2})))["field"]
-    assert s.outline_band == 2
+    assert s.outline_band_px == 2
     photo = s.photos[0]
     ref = read_mask(photo.mask, photo.size_hw)
     reading = _fake_reading(ref_full, photo.mm_per_px)
     as_drawn = PhotoScorer(SimpleNamespace(finds_grains=True), s).add(photo, reading, ref)
     assert as_drawn["size_error"]["size_definition"]["median_bias"] > 0.1  # found grains look too large
-    rest = restored_row(PhotoScorer(SimpleNamespace(finds_grains=True), s, outlines_restored=True), photo, reading,
-                        ref)
-    assert rest["band_px"] == 2 and rest["detection"]["f1"] == 1.0
-    # grown by 1 px, the reference is the found grains but for their corner pixels (√2 away)
-    assert rest["size_error"]["size_definition"]["median"] < 0.03
+    rest = PhotoScorer(SimpleNamespace(finds_grains=True), s, outlines_restored=True).add(photo, reading, ref)
+    assert as_drawn["n_reference"] == 3
+    assert rest["band_px"] == 2 and rest["detection"]["f1"] == 1.0 and rest["n_reference"] == 3
+    # grown by (2 + 1) / 2 px, corners included (√2): the reference is the found grains
+    assert rest["size_error"]["size_definition"]["median"] == pytest.approx(0.0)
     assert rest["reference_from"] == "mask"  # the CSV's d-values are of the grains as drawn
-    assert all(abs(v) < 0.03 for v in rest["psd_rel_err"].values())
+    # ... of all three grains, 3 too: the border rule is the mask's as drawn (its grown copy touches the border)
+    from psdfactory.deploy.photos import percentiles
+    from psdfactory.learn.instances.measure import measure_instances
+
+    full = measure_instances(ref_full.astype(np.int64), photo.mm_per_px)
+    assert list(rest["reference_mm"].values()) == pytest.approx(percentiles(full.ellipse_minor_mm).tolist())
+    assert rest["detection"]["tp"] == 3 and rest["detection"]["left_out_reference"] == 0
     auto = photoset.check(validate(photo_config(folder, {"outline_band_px": "auto"})))["field"]
-    rest = restored_row(PhotoScorer(SimpleNamespace(finds_grains=True), auto, outlines_restored=True), photo,
-                        reading, ref)
+    rest = PhotoScorer(SimpleNamespace(finds_grains=True), auto, outlines_restored=True).add(photo, reading, ref)
     assert rest["band_px"] == 0.0  # the mask's two grains are far apart: no band to read off it
     # a band without masks describes nothing: refused, naming the key
     with pytest.raises(PsdError, match="photos.field.outline_band_px: 'auto' describes reference masks"):

@@ -381,7 +381,7 @@ def test_a_reading_that_is_no_size_distribution_is_named_in_a_warning(folder, mo
 
     assert predict.not_a_psd(np.array([1.0, 2.0, 3.0])) is None
     assert "a size <= 0" in predict.not_a_psd(np.array([-8.9, 0.9, 6.5]))
-    assert "a size <= 0" in predict.not_a_psd(np.array([np.nan, 1.0, 2.0]))
+    assert "not a number" in predict.not_a_psd(np.array([np.nan, 1.0, 2.0]))
     assert "out of order" in predict.not_a_psd(np.array([3.0, 2.0, 4.0]))
     outputs = iter([[[-2.0, 1.0, 3.0]], [[1.0, 2.0, 3.0]]])
     monkeypatch.setattr(predict, "load_predictor",
@@ -394,3 +394,29 @@ def test_a_reading_that_is_no_size_distribution_is_named_in_a_warning(folder, mo
     assert [float(r["d10_mm"]) for r in rows] == [-2.0, 1.0] and all(r["error"] == "" for r in rows)
     warned = [r.message for r in caplog.records if "no measurement" in r.message]
     assert len(warned) == 1 and "img-0000.png" in warned[0] and "-2 / 1 / 3 mm, a size <= 0" in warned[0]
+
+
+def test_a_reading_whose_grains_lie_outside_the_readouts_fit_is_named_in_a_warning(folder, model_file, tmp_path,
+                                                                                   monkeypatch, caplog):
+    """The instance estimator names the statistics its read-out extrapolates from (readout_outside);
+    predict says so for the image, and whether the reading was held."""
+    from types import SimpleNamespace
+
+    from psdfactory.cli import main
+    from psdfactory.deploy import predict
+    from psdfactory.learn.cnn import CnnRegressor
+    from psdfactory.learn.estimator import Reading
+
+    est = CnnRegressor(META, lambda x: np.array([[1.0, 2.0, 3.0]]))
+    est.readout_held = True
+    monkeypatch.setattr(predict, "load_predictor", lambda *a, **k: est)
+    outside = ("d50_mm 35.3 (fitted 7.62 to 11.7)", "d90_mm 79.8 (fitted 13.8 to 18.9)")
+    grains = iter([SimpleNamespace(readout_outside=outside), SimpleNamespace(readout_outside=())])
+    monkeypatch.setattr(predict, "read_at_scale",
+                        lambda *a, **k: (Reading(np.array([1.0, 2.0, 3.0]), grains=next(grains)), (32, 32)))
+    images = many_images(tmp_path / "two", 2)
+    with caplog.at_level("WARNING", logger="psdfactory.deploy.predict"):
+        assert main(["predict", "--model", str(model_file), "--out", str(tmp_path / "psd.csv"), str(images)]) == 0
+    warned = [r.message for r in caplog.records if "read-out was fitted on" in r.message]
+    assert len(warned) == 1 and "img-0000.png" in warned[0] and outside[0] in warned[0] and outside[1] in warned[0]
+    assert "extrapolates, held to the correction" in warned[0]

@@ -24,8 +24,12 @@ What is measured, per photo and pooled over the set:
   grains (a CNN) gives its own reading only, in its own size definition: compared with the
   reference all the same, the definitions named beside the figures.
 
+Where the set declares an outline band (`outline_band_px`: the reference masks keep that much
+background between grains that touch, as segmenteverygrain's do), every figure is given again
+against the reference grains grown by half of it (`outlines_restored`, `pooled_outlines_restored`).
+
 Nothing here is fitted or chosen on the photos: the model's own post-processing and read-out run
-as they are.
+as they are; the band is read off the reference masks alone.
 """
 
 from __future__ import annotations
@@ -95,9 +99,11 @@ def detection(tp: int, fp: int, fn: int, left_out_pred: int, left_out_true: int)
 
 class PhotoScorer:
     """One model on one photo set: `add` per photo (its figures), `pooled` at the end. With
-    `outlines_restored` the reference masks given to `add` are the set's grown by half their
-    outline band (`learn.instances.scoring.restore_outlines`), and the reference d-values are
-    theirs, not the CSV's (which are of the grains as drawn)."""
+    `outlines_restored` it scores against each reference mask's grains grown by half its outline
+    band (the set's `outline_band_px`, or the mask's own where that says auto:
+    `learn.instances.scoring.outline_band_px`, `restore_outlines`): the same reference grains as
+    drawn (the border rule decided on the mask as drawn), their d-values measured on the grown
+    mask, not the CSV's (which are of the grains as drawn)."""
 
     def __init__(self, est: Estimator, photos: PhotoSet, outlines_restored: bool = False):
         self.est, self.set, self.outlines_restored = est, photos, outlines_restored
@@ -106,8 +112,10 @@ class PhotoScorer:
         self.pairs: dict[str, list] = {"est": [], "sieve": [], "ref": []}
         self.psd_err: list[list[float | None]] = []
 
-    def reference_of(self, photo: Photo, ref_mask: np.ndarray | None) -> tuple[np.ndarray | None, str | None]:
-        """The photo's reference d10/d50/d90 and where they come from (its CSV, else its mask)."""
+    def reference_of(self, photo: Photo, ref_mask: np.ndarray | None,
+                     on_border: np.ndarray | None = None) -> tuple[np.ndarray | None, str | None]:
+        """The photo's reference d10/d50/d90 and where they come from (its CSV, else its mask's
+        grains not on the border: those of `on_border`, ids, where given)."""
         from ..learn.instances.measure import measure_instances
 
         if photo.reference_mm is not None and not self.outlines_restored:
@@ -115,12 +123,25 @@ class PhotoScorer:
         if ref_mask is None:
             return None, None
         rm = measure_instances(ref_mask, photo.mm_per_px)
-        return percentiles(getattr(rm, self.measure)[~rm.touches_edge]), "mask"
+        edge = rm.touches_edge if on_border is None else np.isin(rm.ids, on_border)
+        return percentiles(getattr(rm, self.measure)[~edge]), "mask"
 
     def add(self, photo: Photo, reading, ref_mask: np.ndarray | None) -> dict:
-        ref, source = self.reference_of(photo, ref_mask)
+        """A photo's figures against its reference mask as drawn (restored here where the scorer
+        restores outlines)."""
+        from ..learn.instances.scoring import border_ids, outline_band_px, restore_outlines
+
+        band = on_border = None
+        if self.outlines_restored and ref_mask is not None:
+            band = self.set.outline_band_px
+            band = outline_band_px(ref_mask) if band == "auto" else float(band)
+            on_border = border_ids(ref_mask)
+            ref_mask = restore_outlines(ref_mask, band)
+        ref, source = self.reference_of(photo, ref_mask, on_border)
         row: dict = {"reference_mm": _d(ref) if ref is not None else None, "reference_from": source,
                      "reading_mm": _d(reading.d_mm), "reading_rel_err": _d(relative(reading.d_mm, ref))}
+        if band is not None:
+            row["band_px"] = band
         if not self.est.finds_grains:
             row["psd_mm"], row["psd_rel_err"] = row["reading_mm"], row["reading_rel_err"]
             self.psd_err.append(relative(reading.d_mm, ref))
@@ -140,7 +161,7 @@ class PhotoScorer:
         if ref_mask is None:
             return row
         pred = resize_mask(res.mask, ref_mask.shape)  # compared at the photo's resolution
-        bm = match_off_border(pred, ref_mask, IOU, pred_on_border=m.ids[m.touches_edge])
+        bm = match_off_border(pred, ref_mask, IOU, pred_on_border=m.ids[m.touches_edge], true_on_border=on_border)
         counts = (bm.tp, bm.fp, bm.fn, bm.left_out_pred, bm.left_out_true)
         self.counts += counts
         rm = measure_instances(ref_mask, photo.mm_per_px)
@@ -234,7 +255,8 @@ TABLE_COLUMNS = ["image", "mm_per_px", "network_h", "network_w", "n_found", "n_f
                  "outline_band_px", "restored_f1", "restored_size_err_median", "restored_size_err_p90",
                  *(f"restored_reference_{n}_mm" for n in NAMES), *(f"restored_rel_err_{n}" for n in NAMES), "overlay"]
 # the figures given again against the reference with its outlines restored (PhotoScorer's outlines_restored)
-RESTORED_KEYS = ("reference_mm", "reference_from", "psd_rel_err", "n_reference", "detection", "size_error")
+RESTORED_KEYS = ("band_px", "reference_mm", "reference_from", "psd_rel_err", "n_reference", "detection",
+                 "size_error")
 
 
 def table_row(photo: Photo, r: dict, psd_definition: str, reading: str) -> dict:
@@ -279,7 +301,7 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
     own = reading_of(type(est), meta, None)
     psd_definition = photos.size_definition if est.finds_grains else own["size_definition"]
     scorer = PhotoScorer(est, photos)
-    restored = PhotoScorer(est, photos, outlines_restored=True) if photos.outline_band != 0 else None
+    restored = PhotoScorer(est, photos, outlines_restored=True) if photos.outline_band_px != 0 else None
     overlays = Path(out_dir) / "overlays"
     per_photo, rows = {}, []
     for photo in photos.photos:
@@ -301,7 +323,8 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         ref_mask = read_mask(photo.mask, size_hw) if photo.mask is not None else None
         r = scorer.add(photo, reading, ref_mask)
         if restored is not None and ref_mask is not None:
-            r["outlines_restored"] = restored_row(restored, photo, reading, ref_mask)
+            rest = restored.add(photo, reading, ref_mask)
+            r["outlines_restored"] = {k: rest[k] for k in RESTORED_KEYS if k in rest}
         r["network_hw"] = [int(v) for v in network_hw]
         r["mm_per_px"] = photo.mm_per_px
         found = reading.grains.mask if est.finds_grains else None
@@ -333,17 +356,6 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         logger.info(f"{arch} on {photos.name}, pooled, outlines restored: "
                     + pooled_line(result["pooled_outlines_restored"]))
     return result
-
-
-def restored_row(scorer: PhotoScorer, photo: Photo, reading, ref_mask: np.ndarray) -> dict:
-    """A photo's figures against its reference mask with the outline band restored (the set's
-    band, or the mask's own where the set says auto)."""
-    from ..learn.instances.scoring import outline_band_px, restore_outlines
-
-    band = scorer.set.outline_band
-    band = outline_band_px(ref_mask) if band == "auto" else float(band)
-    r = scorer.add(photo, reading, restore_outlines(ref_mask, band))
-    return {"band_px": band, **{k: r[k] for k in RESTORED_KEYS if k in r}}
 
 
 def _pct(v) -> str:

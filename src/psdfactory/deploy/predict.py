@@ -426,7 +426,9 @@ def not_a_psd(d_mm: np.ndarray) -> str | None:
     training images."""
     d = np.asarray(d_mm, float)
     text = " / ".join(f"{v:.3g}" for v in d) + " mm"
-    if not np.all(np.isfinite(d)) or np.any(d <= 0):
+    if not np.all(np.isfinite(d)):
+        return f"d10/d50/d90 {text}, not a number"
+    if np.any(d <= 0):
         return f"d10/d50/d90 {text}, a size <= 0"
     if np.any(np.diff(d) < 0):
         return f"d10/d50/d90 {text}, out of order"
@@ -451,10 +453,12 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
         d = est.in_definition(found, what["size_definition"], what["weighting"], str(path))
         outside = getattr(found.grains, "readout_outside", ())
         if outside and what["size_definition"] in SOLID_DEFINITIONS:
+            held = (", held to the correction of the visible grains' sizes it learnt"
+                    if getattr(est, "readout_held", False) else "")
             logger.warning(f"{path}: its grains lie outside what {meta['arch']}'s read-out was fitted on "
                            f"({'; '.join(outside[:3])}{'; ...' if len(outside) > 3 else ''}): the read-out "
-                           "extrapolates, held to the correction of the visible grains' sizes it learnt; check the "
-                           "d-values against the grains' own (--size-definition feret-min)")
+                           f"extrapolates{held}; check the d-values against the grains' own (--size-definition "
+                           "feret-min)")
         d = apply_calibration(meta, what, d)  # a calibrated model's correction (psdfactory calibrate)
         problem = not_a_psd(d)
         if problem:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .instances.stats import READOUT_FEATURES, STAT_NAMES
+from .instances.stats import READOUT_FEATURES, SIZE_STATS, STAT_NAMES
 from .metrics import MIN_SCENES, cross_validated_r2, ridge_fit
 
 READOUT_ALPHAS = (1e-3, 1e-2, 1e-1, 1.0)  # ridge strengths (× N scenes) tried by cross-validation
@@ -17,7 +17,7 @@ READOUT_ALPHAS = (1e-3, 1e-2, 1e-1, 1.0)  # ridge strengths (× N scenes) tried 
 DOMAIN_MARGIN = 0.5
 # the visible grains' number-weighted d10/d50/d90 (instance statistics): what the read-out corrects, and what it is
 # held to: each target within the range of label / visible ratios of the scenes it was fitted on (`apply_readout`)
-VISIBLE = ("d10_mm", "d50_mm", "d90_mm")
+VISIBLE = SIZE_STATS[:3]  # d10_mm, d50_mm, d90_mm
 
 
 def _impute(x: np.ndarray, fill: np.ndarray) -> np.ndarray:
@@ -38,7 +38,11 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
     features standardised, the ridge strength (× N) picked by k-fold cross-validated mean R²
     where there are enough scenes. It records the range of each feature (`lo`, `hi`:
     `outside_domain`) and of each label's ratio to the visible grains' size (`ratio_lo`,
-    `ratio_hi`: `apply_readout` holds a reading within it) over these scenes."""
+    `ratio_hi`: `apply_readout` holds a reading within it) over these scenes; the cross-validated
+    R² that picks the ridge strength is of the linear fit alone (a held reading differs from it
+    only where a scene's residual crosses the extreme ratios, at most a hair where it was fitted).
+    The ratios are to the number-weighted visible sizes whatever the labels' weighting: for
+    volume-weighted labels they are wider, the hold looser."""
     y = np.asarray(y, float)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = y / readout_columns(x, VISIBLE)  # how much the labels exceed the visible grains' sizes
@@ -86,12 +90,14 @@ def apply_readout(readout: dict, x: np.ndarray) -> np.ndarray:
 def outside_domain(readout: dict, x: np.ndarray) -> list[str]:
     """The features of one image's statistics (1 x len(STAT_NAMES)) that lie farther than
     DOMAIN_MARGIN x the range the read-out was fitted on beyond that range, each as
-    "name value (fitted lo-hi)": where the read-out would extrapolate. Empty inside it, and for a
-    read-out fitted before ranges were recorded."""
+    "name value (fitted lo to hi)": where the read-out extrapolates. Empty inside it, and for a
+    read-out fitted before ranges were recorded. A feature that was constant where it was
+    fitted has no range to judge by, and a missing one (NaN: no grain) is imputed as the read-out
+    imputes it: neither is named."""
     if readout.get("lo") is None or readout.get("hi") is None:
         return []
     v = _impute(readout_columns(x, readout["features"]), np.asarray(readout["impute"], float))[0]
     lo, hi = np.asarray(readout["lo"], float), np.asarray(readout["hi"], float)
     pad = DOMAIN_MARGIN * (hi - lo)
-    out = (v < lo - pad) | (v > hi + pad)
+    out = ((v < lo - pad) | (v > hi + pad)) & (hi > lo)
     return [f"{f} {v[j]:.3g} (fitted {lo[j]:.3g} to {hi[j]:.3g})" for j, f in enumerate(readout["features"]) if out[j]]

@@ -89,6 +89,12 @@ class InstanceEstimator(Estimator):
         self.readout = meta.get("readout")
         self.views = TTA_VIEWS[meta.get("tta", "none")]  # a model from before TTA: one view
 
+    @property
+    def readout_held(self) -> bool:
+        """Its read-out holds a reading within the label / visible-size ratios it was fitted on
+        (`readout.apply_readout`): one fitted since the ratios are recorded."""
+        return bool(self.readout) and self.readout.get("ratio_lo") is not None
+
     # ---- the interface -----------------------------------------------------------------------
 
     @classmethod
@@ -346,6 +352,17 @@ def _one_readout_problems(name: str, ro: object, maps: object, nums) -> list[str
     ok = (all(nums(ro.get(k), nf) for k in ("impute", "mean", "scale"))
           and isinstance(ro.get("weights"), list) and len(ro["weights"]) == nf + 1
           and all(nums(w, 3) for w in ro["weights"]))
-    return [] if ok else [f"{name} must hold impute/mean/scale ({nf} numbers each) and weights ({nf + 1} × 3)"]
+    if not ok:
+        return [f"{name} must hold impute/mean/scale ({nf} numbers each) and weights ({nf + 1} × 3)"]
+    # optional (a read-out fitted before they were recorded has none): the fitted ranges and the ratios it is held to
+    problems = [f"{name}.{k} must be {n} numbers or absent" for k, n in (("lo", nf), ("hi", nf), ("ratio_lo", 3),
+                                                                         ("ratio_hi", 3))
+                if ro.get(k) is not None and not nums(ro[k], n)]
+    ratios = [ro.get("ratio_lo"), ro.get("ratio_hi")]
+    if not problems and (ratios[0] is None) != (ratios[1] is None):
+        problems.append(f"{name}.ratio_lo and ratio_hi go together")
+    elif not problems and ratios[0] is not None and not all(v > 0 for v in (*ratios[0], *ratios[1])):
+        problems.append(f"{name}.ratio_lo and ratio_hi must be > 0")
+    return problems
 
 

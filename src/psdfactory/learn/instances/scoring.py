@@ -128,15 +128,17 @@ class BorderMatch:
 
 
 def match_off_border(pred_mask: np.ndarray, true_mask: np.ndarray, iou: float = 0.5,
-                     pred_on_border: np.ndarray | None = None) -> BorderMatch:
+                     pred_on_border: np.ndarray | None = None,
+                     true_on_border: np.ndarray | None = None) -> BorderMatch:
     """`match_instances`, scored by the border rule of `BorderMatch`. `pred_on_border`: the ids of
     the predicted grains that touch the border where that was decided on another copy of the
-    mask (the estimator's own, before a resize); default: those touching this mask's border."""
+    mask (the estimator's own, before a resize); default: those touching this mask's border.
+    `true_on_border` likewise for the reference (the mask as drawn, where it was grown since)."""
     m = match_instances(pred_mask, true_mask, iou)
     pred_present = compact_ids(check_mask(pred_mask))[0]
     true_present = compact_ids(check_mask(true_mask))[0]
     pred_edge = border_ids(pred_mask) if pred_on_border is None else np.asarray(pred_on_border, np.int64)
-    true_edge = border_ids(true_mask)
+    true_edge = border_ids(true_mask) if true_on_border is None else np.asarray(true_on_border, np.int64)
     scored = ~np.isin(m.true_ids, true_edge)  # matched to a reference grain that is not left out
     unmatched = pred_present[~np.isin(pred_present, m.pred_ids)]
     on_edge = np.isin(unmatched, pred_edge)
@@ -176,7 +178,6 @@ def size_errors(est_mm: np.ndarray, true_mm: np.ndarray) -> dict:
     rel = np.abs(est_mm - true_mm) / true_mm
     return {"n": int(len(rel)), "median": float(np.median(rel)), "p90": float(np.percentile(rel, 90)),
             "median_bias": float(np.median(est_mm / true_mm) - 1)}
-
 
 
 # ---------------------------------------------------------------------------------------------
@@ -234,11 +235,13 @@ def outline_band_px(mask: np.ndarray) -> float:
 
 def restore_outlines(mask: np.ndarray, band_px: float) -> np.ndarray:
     """The reference grains grown by half an outline band into the background around them, no
-    grain into another (skimage's expand_labels: each background pixel within band/2 of a grain
-    goes to its nearest grain): touching grains meet again at the band's middle."""
+    grain into another: touching grains meet again at the band's middle. A band of w px lies
+    between two grains' last pixels, whose edges are half a pixel further out: each grain's edge
+    moves w/2 out, taking the pixels whose centres lie within (w + 1)/2 of its own (skimage's
+    expand_labels, each to its nearest grain; an odd band's middle pixel to one of the two)."""
     from skimage.segmentation import expand_labels
 
     if band_px < 0:
         raise PsdError(f"an outline band is a width >= 0 px, got {band_px}")
     m = check_mask(mask)
-    return m.copy() if band_px == 0 else expand_labels(m, band_px / 2)
+    return m.copy() if band_px == 0 else expand_labels(m, (band_px + 1) / 2)
