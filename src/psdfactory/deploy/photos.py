@@ -46,7 +46,7 @@ from ..learn.calibration import apply_calibration
 from ..learn.estimator import Estimator, Reading, reading_of
 from ..photoset import Photo, PhotoSet
 from ..psd import NAMES, weighted_percentiles
-from .predict import DEFAULT_TILE_PX, load_predictor, network_scale, not_a_psd, read_at_scale, target_size
+from .predict import DEFAULT_TILE_PX, load_predictor, network_scale, read_at_scale, target_size, warn_if_not_a_psd
 
 logger = logging.getLogger(__name__)
 
@@ -112,23 +112,21 @@ class PhotoScorer:
         self.pairs: dict[str, list] = {"est": [], "sieve": [], "ref": []}
         self.psd_err: list[list[float | None]] = []
 
-    def reference_of(self, photo: Photo, ref_mask: np.ndarray | None,
-                     on_border: np.ndarray | None = None) -> tuple[np.ndarray | None, str | None]:
+    def reference_of(self, photo: Photo, rm, on_border: np.ndarray | None = None
+                     ) -> tuple[np.ndarray | None, str | None]:
         """The photo's reference d10/d50/d90 and where they come from (its CSV, else its mask's
-        grains not on the border: those of `on_border`, ids, where given)."""
-        from ..learn.instances.measure import measure_instances
-
+        grains, `rm` its measurements, not on the border: those of `on_border`, ids, where given)."""
         if photo.reference_mm is not None and not self.outlines_restored:
             return np.asarray(photo.reference_mm, float), "csv"
-        if ref_mask is None:
+        if rm is None:
             return None, None
-        rm = measure_instances(ref_mask, photo.mm_per_px)
         edge = rm.touches_edge if on_border is None else np.isin(rm.ids, on_border)
         return percentiles(getattr(rm, self.measure)[~edge]), "mask"
 
     def add(self, photo: Photo, reading, ref_mask: np.ndarray | None) -> dict:
         """A photo's figures against its reference mask as drawn (restored here where the scorer
         restores outlines)."""
+        from ..learn.instances.measure import measure_instances
         from ..learn.instances.scoring import border_ids, outline_band_px, restore_outlines
 
         band = on_border = None
@@ -137,7 +135,10 @@ class PhotoScorer:
             band = outline_band_px(ref_mask) if band == "auto" else float(band)
             on_border = border_ids(ref_mask)
             ref_mask = restore_outlines(ref_mask, band)
-        ref, source = self.reference_of(photo, ref_mask, on_border)
+        # the reference grains measured once: for its d-values (no CSV, or outlines restored) and the size pairs
+        need = ref_mask is not None and (self.est.finds_grains or photo.reference_mm is None or self.outlines_restored)
+        rm = measure_instances(ref_mask, photo.mm_per_px) if need else None
+        ref, source = self.reference_of(photo, rm, on_border)
         row: dict = {"reference_mm": _d(ref) if ref is not None else None, "reference_from": source,
                      "reading_mm": _d(reading.d_mm), "reading_rel_err": _d(relative(reading.d_mm, ref))}
         if band is not None:
@@ -147,7 +148,6 @@ class PhotoScorer:
             self.psd_err.append(relative(reading.d_mm, ref))
             return row
         from ..learn.instances.draw import resize_mask
-        from ..learn.instances.measure import measure_instances
         from ..learn.instances.scoring import match_off_border, size_errors
 
         res = reading.grains
@@ -164,7 +164,6 @@ class PhotoScorer:
         bm = match_off_border(pred, ref_mask, IOU, pred_on_border=m.ids[m.touches_edge], true_on_border=on_border)
         counts = (bm.tp, bm.fp, bm.fn, bm.left_out_pred, bm.left_out_true)
         self.counts += counts
-        rm = measure_instances(ref_mask, photo.mm_per_px)
         ref_size = np.full(int(rm.ids.max(initial=0)) + 1, np.nan)
         ref_size[rm.ids] = getattr(rm, self.measure)
         k = np.searchsorted(m.ids, bm.pred_ids)
@@ -316,10 +315,7 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         found, network_hw = read_at_scale(est, image, size_hw, photo.mm_per_px, DEFAULT_TILE_PX, str(photo.path))
         # its own reading as predict gives it (a calibrated model's correction applied)
         reading = Reading(apply_calibration(meta, own, found.d_mm), grains=found.grains)
-        problem = not_a_psd(reading.d_mm)
-        if problem:
-            logger.warning(f"{arch} on {photos.name}/{photo.name}: read {problem}, not a size distribution: the photo "
-                           "is unlike the images it learnt")
+        warn_if_not_a_psd(f"{photos.name}/{photo.name}", arch, reading.d_mm)
         ref_mask = read_mask(photo.mask, size_hw) if photo.mask is not None else None
         r = scorer.add(photo, reading, ref_mask)
         if restored is not None and ref_mask is not None:

@@ -435,6 +435,14 @@ def not_a_psd(d_mm: np.ndarray) -> str | None:
     return None
 
 
+def warn_if_not_a_psd(where: str, arch: str, d_mm: np.ndarray) -> None:
+    """A warning naming the image (`where`) when a model's reading is no size distribution (`not_a_psd`)."""
+    problem = not_a_psd(d_mm)
+    if problem:
+        logger.warning(f"{where}: {arch} read {problem}: not a size distribution. The image is unlike those the "
+                       "model learnt (material, look, scale): its d-values are no measurement")
+
+
 def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: GrainOutputs | None = None,
                 what: dict | None = None, tile: int | None = DEFAULT_TILE_PX) -> dict:
     """One image → its row; a bad image gives a row whose `error` names the file and the reason.
@@ -460,10 +468,7 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
                            f"extrapolates{held}; check the d-values against the grains' own (--size-definition "
                            "feret-min)")
         d = apply_calibration(meta, what, d)  # a calibrated model's correction (psdfactory calibrate)
-        problem = not_a_psd(d)
-        if problem:
-            logger.warning(f"{path}: {meta['arch']} read {problem}: not a size distribution. The image is unlike those "
-                           "the model learnt (material, look, scale): its d-values are no measurement")
+        warn_if_not_a_psd(str(path), meta["arch"], d)
         return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, **what, "error": ""}
     except PsdError as e:
         error = str(e)
