@@ -420,3 +420,65 @@ def test_a_reading_whose_grains_lie_outside_the_readouts_fit_is_named_in_a_warni
     warned = [r.message for r in caplog.records if "read-out was fitted on" in r.message]
     assert len(warned) == 1 and "img-0000.png" in warned[0] and outside[0] in warned[0] and outside[1] in warned[0]
     assert "extrapolates, held to the correction" in warned[0]
+
+
+def _grains(mask: np.ndarray):
+    from types import SimpleNamespace
+
+    from psdfactory.learn.instances.measure import measure_instances
+
+    return SimpleNamespace(measurements=measure_instances(mask, 0.5), readout_outside=())
+
+
+def _grid_mask(n: int, size: int = 96) -> np.ndarray:
+    """n 4 x 4 px grains, none touching the edge."""
+    mask = np.zeros((size, size), np.uint16)
+    for k in range(n):
+        r, c = divmod(k, 12)
+        mask[2 + 7 * r:6 + 7 * r, 2 + 7 * c:6 + 7 * c] = k + 1
+    return mask
+
+
+def test_grain_count_problem_by_hand():
+    from psdfactory.deploy.predict import MIN_WHOLE_GRAINS, grain_count_problem
+
+    assert grain_count_problem("p.jpg", None) == (None, None)  # a regressor: no grains to count
+    error, warning = grain_count_problem("p.jpg", _grains(np.zeros((32, 32), np.uint16)))
+    assert error.startswith("p.jpg: no grain found") and warning is None
+    edge = np.zeros((32, 32), np.uint16)
+    edge[:, :20] = 1  # one grain, cut by the border
+    error, warning = grain_count_problem("p.jpg", _grains(edge))
+    assert "every grain found (1) touches the image's edge" in error and warning is None
+    error, warning = grain_count_problem("p.jpg", _grains(_grid_mask(MIN_WHOLE_GRAINS - 1)))
+    assert error is None and f"{MIN_WHOLE_GRAINS - 1} whole grains found" in warning
+    assert grain_count_problem("p.jpg", _grains(_grid_mask(MIN_WHOLE_GRAINS))) == (None, None)
+
+
+def test_predict_refuses_a_reading_from_no_whole_grain_and_warns_on_few(folder, model_file, tmp_path, monkeypatch,
+                                                                          caplog):
+    """A blank or featureless image can come out as one grain filling the frame, or none at all: its
+    read-out would be the training scenes' prior (a uniform grey photo read 16 / 55 / 57 mm). predict
+    gives those rows an error naming the image and what to check, and warns where few grains carry it."""
+    from psdfactory.cli import main
+    from psdfactory.deploy import predict
+    from psdfactory.learn.cnn import CnnRegressor
+    from psdfactory.learn.estimator import Reading
+
+    monkeypatch.setattr(predict, "load_predictor",
+                        lambda *a, **k: CnnRegressor(META, lambda x: np.array([[1.0, 2.0, 3.0]])))
+    edge = np.zeros((96, 96), np.uint16)
+    edge[10:, :] = 1
+    masks = iter([np.zeros((96, 96), np.uint16), edge, _grid_mask(5), _grid_mask(40)])
+    monkeypatch.setattr(predict, "read_at_scale",
+                        lambda *a, **k: (Reading(np.array([1.0, 2.0, 3.0]), grains=_grains(next(masks))), (96, 96)))
+    images = many_images(tmp_path / "four", 4)
+    out = tmp_path / "psd.csv"
+    with caplog.at_level("WARNING", logger="psdfactory.deploy.predict"):
+        assert main(["predict", "--model", str(model_file), "--out", str(out), str(images)]) == 1
+    rows = list(csv.DictReader(open(out)))
+    errors = [r["error"] for r in rows]
+    assert "img-0000.png: no grain found" in errors[0] and rows[0]["d50_mm"] == ""
+    assert "img-0001.png: every grain found (1) touches the image's edge" in errors[1]
+    assert errors[2:] == ["", ""] and float(rows[2]["d50_mm"]) == 2.0
+    warned = [r.message for r in caplog.records if "whole grain" in r.message]
+    assert len(warned) == 1 and "img-0002.png: 5 whole grains found" in warned[0]

@@ -46,7 +46,8 @@ from ..learn.calibration import apply_calibration
 from ..learn.estimator import Estimator, Reading, reading_of
 from ..photoset import Photo, PhotoSet
 from ..psd import NAMES, weighted_percentiles
-from .predict import DEFAULT_TILE_PX, load_predictor, network_scale, read_at_scale, target_size, warn_if_not_a_psd
+from .predict import (DEFAULT_TILE_PX, grain_count_problem, load_predictor, network_scale, read_at_scale, target_size,
+                      warn_if_not_a_psd)
 
 logger = logging.getLogger(__name__)
 
@@ -316,6 +317,9 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         # its own reading as predict gives it (a calibrated model's correction applied)
         reading = Reading(apply_calibration(meta, own, found.d_mm), grains=found.grains)
         warn_if_not_a_psd(f"{photos.name}/{photo.name}", arch, reading.d_mm)
+        for problem in grain_count_problem(f"{photos.name}/{photo.name}", found.grains):
+            if problem:  # scored all the same (a photo with no grain found scores F1 0): said, not refused
+                logger.warning(problem)
         ref_mask = read_mask(photo.mask, size_hw) if photo.mask is not None else None
         r = scorer.add(photo, reading, ref_mask)
         if restored is not None and ref_mask is not None:

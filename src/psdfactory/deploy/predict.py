@@ -443,6 +443,34 @@ def warn_if_not_a_psd(where: str, arch: str, d_mm: np.ndarray) -> None:
                        "model learnt (material, look, scale): its d-values are no measurement")
 
 
+# A percentile of n grains rests on about n / 10 of them at d10 and at d90: under this many whole grains, on fewer
+# than 3 each
+MIN_WHOLE_GRAINS = 30
+
+
+def grain_count_problem(where: str, grains: object) -> tuple[str | None, str | None]:
+    """(error, warning) about how many whole grains a grain finder's reading (`grains`: an InstanceResult, or None
+    for a regressor) rests on: an error where it found none, or only grains cut by the image's edge (a read-out from
+    no grain is the training scenes' prior, not a measurement); a warning under MIN_WHOLE_GRAINS."""
+    m = getattr(grains, "measurements", None)
+    if m is None:
+        return None, None
+    n_all, n_whole = len(m), int((~np.asarray(m.touches_edge, bool)).sum())
+    look = "--overlay shows what the model took for grains"
+    if n_all == 0:
+        return (f"{where}: no grain found, nothing to measure: is it a photo of a grain bed, at the scale given "
+                f"(--mm-per-px)? ({look})"), None
+    if n_whole == 0:
+        return (f"{where}: every grain found ({n_all}) touches the image's edge: none is whole, so no size can be "
+                "read. Grains as large as the field of view, a wrong --mm-per-px, or no grains at all "
+                f"({look})"), None
+    if n_whole < MIN_WHOLE_GRAINS:
+        return None, (f"{where}: {n_whole} whole grain{'s' if n_whole > 1 else ''} found: its d10 and d90 each rest "
+                      f"on fewer than 3 of them (at least {MIN_WHOLE_GRAINS} for percentiles to mean much): "
+                      "photograph a larger area, or check the overlay")
+    return None, None
+
+
 def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: GrainOutputs | None = None,
                 what: dict | None = None, tile: int | None = DEFAULT_TILE_PX) -> dict:
     """One image → its row; a bad image gives a row whose `error` names the file and the reason.
@@ -458,6 +486,11 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
         found, _ = read_at_scale(est, image, size_hw, mm_per_px, tile, str(path))
         if grains is not None:
             grains.write(path, image, size_hw, found.grains)
+        error, warning = grain_count_problem(str(path), found.grains)
+        if error:
+            raise PsdError(error)
+        if warning:
+            logger.warning(warning)
         d = est.in_definition(found, what["size_definition"], what["weighting"], str(path))
         outside = getattr(found.grains, "readout_outside", ())
         if outside and what["size_definition"] in SOLID_DEFINITIONS:
