@@ -46,8 +46,15 @@ from ..learn.calibration import apply_calibration
 from ..learn.estimator import Estimator, Reading, reading_of
 from ..photoset import Photo, PhotoSet
 from ..psd import NAMES, weighted_percentiles
-from .predict import (DEFAULT_TILE_PX, grain_count_problem, load_predictor, network_scale, read_at_scale, target_size,
-                      warn_if_not_a_psd)
+from .predict import (
+    DEFAULT_TILE_PX,
+    grain_count_problem,
+    load_predictor,
+    network_scale,
+    read_at_scale,
+    target_size,
+    warn_if_not_a_psd,
+)
 
 logger = logging.getLogger(__name__)
 
