@@ -15,8 +15,8 @@ by side: the stages, scenes per hour, the quality figures, and whether the sampl
 are identical. --against REV compares with another revision instead of this working tree.
 
 --shape-library K runs the scenes with ``shape_library: K`` (the dataset's particles drawn from K
-shapes made once per worker process or batch job); two values (e.g. ``--shape-library 0 2048``)
-run this tree twice, one side each, interleaved as --compare does.
+shapes made once per worker process or batch job; with --compare, on both sides); two values
+(e.g. ``--shape-library 0 2048``) run this tree twice, one side each, interleaved as --compare does.
 
 --dag N also runs the workflow (`snakemake -j2 scenes`: every stage in scenes_per_job batches,
 the manifests and contact sheets) on N scenes of the config with each side's code, alternately,
@@ -290,7 +290,7 @@ def main() -> None:
             sides = [Side("after" if a.compare else "now", new_tree, a.workers, tmp / "new", libs[0])]
             print(f"{sides[0].name}: {describe(a.against)}")
         if a.compare:
-            sides.insert(0, Side("before", extract(a.compare, tmp / "old-code"), a.workers, tmp / "old"))
+            sides.insert(0, Side("before", extract(a.compare, tmp / "old-code"), a.workers, tmp / "old", libs[0]))
             print(f"before: {describe(a.compare)}")
         indices = list(range(a.scenes))  # (--scenes 0: only the workflow)
         t0 = time.perf_counter()
