@@ -9,7 +9,7 @@ Two settles (``physics.settle``), both freezing each particle once it is still a
   it is tipped, quasi-statically, onto the face it would come to rest on if dropped on the bare
   floor (``resting_rotations``), then lowered onto a height field of the particles placed before
   it, at the lowest spot within ``SPAWN_SHIFT_MM`` of its drop spot (``resting_spawn``): falls of
-  a few mm instead of tens of mm, ~30 % fewer steps. A particle freezes once every point of it moves
+  ~1 mm instead of tens of mm, ~30 % fewer steps. A particle freezes once every point of it moves
   slower than ``freeze_speed_mm_s`` (``|v| + |ω|·r``, r its circumradius) at ``freeze_checks``
   checks in a row; the floor and walls are rigid bodies like the particles (one solver for every
   contact; penetration corrected by contact_erp alone, no split impulse); the walls collide only
@@ -222,10 +222,8 @@ def resting_spawn(geometry: Geometry, xy: np.ndarray, rots: np.ndarray, table_si
     lowered onto a height field (cells of `cell` mm) of those placed before it, at the lowest
     spot within `shift` mm of its drop spot, `gap` above what it would touch.
 
-    Each particle's top over the cells (``_surfaces``) is widened by a cell, so that what a cell
-    of the height field holds is about never lower than the particles there. (Its underside was
-    widened too until 2026-11-27: the margin counted twice, and dense scenes started 2-3x their
-    resting height up, which the settle then spent its steps collapsing.)"""
+    Each particle's underside and top over the cells (``_surfaces``) are widened by a cell, so that
+    what a cell holds is about never lower (top) or higher (underside) than the particle there."""
     v, f, normal, dist, _, pid = _faces(geometry) if faces is None else faces
     n = len(rots)
     vo = geometry.vert_offsets
@@ -278,8 +276,7 @@ def _surfaces(vr: np.ndarray, f: np.ndarray, nr: np.ndarray, dist: np.ndarray, p
     its centre: at each cell centre the height of the face above (below) it, a face's plane
     evaluated only over the cells its shadow covers, so the work grows with the area, not with
     area × faces; each vertex also raises (lowers) its own cell; -inf / inf off the particle;
-    then each cell of the top takes the highest of its 3 × 3 neighbourhood (the underside stays as
-    it is: one widening covers a peak between two cell centres, a second one only lifts the start)."""
+    then each cell takes the extreme of its 3 × 3 neighbourhood."""
     n = len(xy)
     size = ext[:, 0] * ext[:, 1]
     off = np.concatenate([[0], np.cumsum(size)])
@@ -317,18 +314,19 @@ def _surfaces(vr: np.ndarray, f: np.ndarray, nr: np.ndarray, dist: np.ndarray, p
     at = off[vpid] + vi * ext[vpid, 1] + vj
     np.maximum.at(top, at, vr[:, 2])
     np.minimum.at(bot, at, vr[:, 2])
-    # each cell of the top takes the highest of its 3 × 3 neighbourhood within its particle's window
+    # each cell takes the extreme of its 3 × 3 neighbourhood within its particle's window
     cp = np.repeat(np.arange(n), size)
     local = np.arange(off[-1]) - off[cp]
     ci, cj, ex, ey = local // ext[cp, 1], local % ext[cp, 1], ext[cp, 0], ext[cp, 1]
-    wide_top = top.copy()
+    wide_top, wide_bot = top.copy(), bot.copy()
     for di in (-1, 0, 1):
         for dj in (-1, 0, 1):
             ok = (ci + di >= 0) & (ci + di < ex) & (cj + dj >= 0) & (cj + dj < ey)
             src = np.where(ok, np.arange(off[-1]) + di * ey + dj, 0)
             np.maximum(wide_top, np.where(ok, top[src], -np.inf), out=wide_top)
+            np.minimum(wide_bot, np.where(ok, bot[src], np.inf), out=wide_bot)
     tops = [wide_top[off[i]:off[i + 1]].reshape(ext[i]) for i in range(n)]
-    bottoms = [bot[off[i]:off[i + 1]].reshape(ext[i]) for i in range(n)]
+    bottoms = [wide_bot[off[i]:off[i + 1]].reshape(ext[i]) for i in range(n)]
     return tops, bottoms
 
 
