@@ -15,6 +15,8 @@ from scipy import ndimage
 
 from ..geometry import CM, Geometry, gc_paused
 from .look import Look, RenderParams, mm_per_px
+from .raster import camera_matrices, raster_raw
+from .raster import rasteriser as raster_choice
 
 
 def visual_meshes(geometry: Geometry, smooth: bool, scale: float) -> list[tuple[list, list, list]]:
@@ -92,15 +94,22 @@ def octaves_px(grain_mm: float, px_mm: float, supersample: int) -> tuple[float, 
     return tuple(f * grain_mm / px_mm * supersample for f in TEXTURE_OCTAVES)
 
 
-def tiny_raw(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams, look: Look):
-    """TinyRenderer at `supersample`× → (rgb float32 in [0,1], ids int32, height above the table in mm)."""
+def tiny_raw(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams, look: Look,
+             rasteriser: str | None = None):
+    """TinyRenderer at `supersample`× → (rgb float32 in [0,1], ids int32, height above the table in mm), drawn by
+    `rasteriser` (``raster.RASTERISERS``; default ``raster.rasteriser()``: the compiled one where numba imports)."""
     import pybullet as pb
 
+    camera = camera_matrices(spec, geometry, pos_mm, p, look)
+    if (rasteriser or raster_choice()) == "numba":
+        view, proj, _, _, height = camera
+        return raster_raw(spec, geometry, pos_mm, quats, p, look, (view, proj, height))
     with gc_paused():
-        return _tiny_raw(pb, spec, geometry, pos_mm, quats, p, look)
+        return _tiny_raw(pb, spec, geometry, pos_mm, quats, p, look, camera)
 
 
-def _tiny_raw(pb, spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams, look: Look):
+def _tiny_raw(pb, spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p: RenderParams, look: Look,
+              camera: tuple):
     n = len(geometry)
     T = float(spec["table_size"])
     size = p.resolution * p.supersample
@@ -133,12 +142,7 @@ def _tiny_raw(pb, spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.
                 linkJointTypes=[pb.JOINT_FIXED] * k, linkJointAxis=[[0, 0, 1]] * k, physicsClientId=cid)
             first[body] = a
 
-        H = p.camera_height_mm * CM
-        fov = math.degrees(2 * math.atan(half * look.view_fraction / H))
-        top = float(np.nanmax(pos_mm[:, 2])) + float(geometry.dims_mm[:, 0].max()) if n else 1.0
-        near, far = H - (top * CM + 1.0), H + 1.0
-        view = pb.computeViewMatrix([0, 0, H], [0, 0, 0], [0, 1, 0], physicsClientId=cid)
-        proj = pb.computeProjectionMatrixFOV(fov, 1.0, near, far, physicsClientId=cid)
+        view, proj, near, far, H = camera
         _, _, rgba, depth, seg = pb.getCameraImage(
             size,
             size,
