@@ -83,7 +83,8 @@ def test_unknown_or_missing_render_setting():
         RenderParams.from_dict({"backend": "tiny"})
 
 
-def test_every_particle_keeps_its_own_id_past_pybullets_127_links_a_body():
+@pytest.mark.parametrize("rasteriser", ["numba", "pybullet"])
+def test_every_particle_keeps_its_own_id_past_pybullets_127_links_a_body(rasteriser):
     """The TinyRenderer gets the particles as the links of a few multibodies (one call per 127
     particles): each pixel's id must still be its own particle's, for scenes of ~1,000 particles as
     for small ones. 20 × 20 cubes of 4 mm on a grid, each seen from above where it lies."""
@@ -110,7 +111,7 @@ def test_every_particle_keeps_its_own_id_past_pybullets_127_links_a_body():
                                "render": {"resolution": 260, "supersample": 1}})
     p = RenderParams.from_dict(psd_config.render_params(cfg))
     look = draw_look(np.random.default_rng(0), p, n, np.random.default_rng(1))
-    _, ids, _ = tiny_raw({"table_size": table, "shape_type": "crushed_rock"}, geo, pos, quats, p, look)
+    _, ids, _ = tiny_raw({"table_size": table, "shape_type": "crushed_rock"}, geo, pos, quats, p, look, rasteriser)
     px = table / 260  # mm per pixel; rows grow towards -y, columns towards +x
     for k in range(n):
         r, c = np.nonzero(ids == k + 1)
@@ -118,3 +119,44 @@ def test_every_particle_keeps_its_own_id_past_pybullets_127_links_a_body():
         x, y = (c.mean() + 0.5) * px - table / 2, table / 2 - (r.mean() + 0.5) * px  # its centre, mm
         assert abs(x - xy[k, 0]) < pitch / 3 and abs(y - xy[k, 1]) < pitch / 3, f"particle {k}'s pixels lie elsewhere"
     assert ids.max() == n
+
+
+@pytest.mark.parametrize("shape_type", ["crushed_rock", "granule"])  # flat facets; smooth vertex normals
+def test_the_compiled_rasteriser_draws_what_tinyrenderer_draws(tiny_results, shape_type):
+    """raster.py draws TinyRenderer's triangles by its rules: on a scene of the tiny dataset, under
+    four looks (light from anywhere, dim to saturating, tinted), the same particle at every pixel,
+    the same heights, and TinyRenderer's colour bytes (bar a rare pixel on a float32 rounding step)."""
+    from psdfactory import config as psd_config
+    from psdfactory.io import read_json
+    from psdfactory.scene.render.look import draw_look
+    from psdfactory.scene.render.tiny import tiny_raw
+    from psdfactory.scene.stages import load_geometry
+
+    cfg, root = tiny_results
+    d = root / "tiny" / "scenes" / "tiny-000001"
+    spec = {**read_json(d / "spec.json"), "shape_type": shape_type}
+    geo = load_geometry(d)
+    pos, quats, _ = load_poses(d)
+    c = psd_config.validate({**cfg, "render": {**cfg["render"], "light_intensity": [0.6, 1.4], "light_tint": [-1, 1]}})
+    p = RenderParams.from_dict(psd_config.render_params(c))
+    for seed in range(4):
+        look = draw_look(np.random.default_rng(seed), p, len(geo), np.random.default_rng(seed + 10))
+        a_rgb, a_ids, a_h = tiny_raw(spec, geo, pos, quats, p, look, "numba")
+        b_rgb, b_ids, b_h = tiny_raw(spec, geo, pos, quats, p, look, "pybullet")
+        assert a_rgb.shape == b_rgb.shape and a_rgb.dtype == b_rgb.dtype == np.float32
+        np.testing.assert_array_equal(a_ids, b_ids)
+        np.testing.assert_allclose(a_h, b_h, atol=0.01)  # mm
+        same = (np.abs(a_rgb - b_rgb) * 255 < 0.5).all(axis=-1)
+        assert same.mean() > 0.999, (seed, same.mean())
+
+
+def test_the_rasteriser_is_chosen_by_the_environment(monkeypatch):
+    from psdfactory.scene.render import raster
+
+    monkeypatch.delenv(raster.ENV, raising=False)
+    assert raster.rasteriser() == "numba"
+    monkeypatch.setenv(raster.ENV, "pybullet")
+    assert raster.rasteriser() == "pybullet"
+    monkeypatch.setenv(raster.ENV, "opengl")
+    with pytest.raises(PsdError, match="PSDFACTORY_RASTERISER='opengl' is no rasteriser"):
+        raster.rasteriser()

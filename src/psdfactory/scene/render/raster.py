@@ -11,15 +11,16 @@ module draws the same triangles with the same rules, compiled by numba:
   barycentric coordinates are ≥ 0 (TinyRenderer's test, degenerate triangles skipped alike), and the
   nearest surface wins (at a tie the later triangle, as there);
 - normals are interpolated perspective-correctly and shaded as TinyRenderer's shader does:
-  intensity = ambient + diffuse·kd + ks·specular with diffuse = max(0, n·l), specular = max(0, r_z)²
-  (r: the light reflected about n), the colour then ``floor(255·intensity)`` times the object's
-  colour and the light's, each truncated, and at most 255, as there (the exponent and the order of
-  the truncations fitted to TinyRenderer's output: see the tests).
+  each channel min(255, floor(floor(255·colour) · (ambient + (kd·max(0, n·l) + ks·max(0, r_z)²) ·
+  light colour))), r the light reflected about n: the ambient light white, the key light coloured
+  (the exponent and the order of the truncations found by fitting TinyRenderer's output; on the
+  test scenes every colour byte is TinyRenderer's).
 
-Measured against TinyRenderer on paper scenes (``tests/test_render.py``, ``bench/render_speed.py``):
-the segmentation is identical, the heights agree to float rounding, and the colours differ by at
-most a level or two of 255 (RMS ~0.5: TinyRenderer computes in float32). ``PSDFACTORY_RASTERISER=
-pybullet`` renders with TinyRenderer itself (where numba cannot be imported, that is the fallback).
+Measured against TinyRenderer (``tests/test_render.py``, and on paper scenes): the segmentation is
+identical, the heights agree to float rounding (~0.004 mm), and the colours are its bytes, bar a rare
+pixel a level off where a normal sits on a truncation step (TinyRenderer computes in float32).
+``PSDFACTORY_RASTERISER=pybullet`` renders with TinyRenderer itself (where numba cannot be imported,
+that is the fallback).
 """
 
 from __future__ import annotations
@@ -30,13 +31,14 @@ import os
 
 import numpy as np
 
+from ... import PsdError
 from ..geometry import CM, Geometry, quat_to_matrix
 
 logger = logging.getLogger(__name__)
 
 RASTERISERS = ("numba", "pybullet")
 ENV = "PSDFACTORY_RASTERISER"
-SPECULAR_EXPONENT = 2.0  # TinyRenderer's, for a model without a specular map (fitted: RMS 0.5 level, 74 % exact)
+SPECULAR_EXPONENT = 2.0  # TinyRenderer's, for a model without a specular map (found by fitting its output)
 SPECULAR_COEFF = 0.05  # the coefficient tiny.py gives getCameraImage (lightSpecularCoeff)
 
 _kernel = None
@@ -46,7 +48,7 @@ def rasteriser() -> str:
     """Which rasteriser the ``tiny`` backend uses: $PSDFACTORY_RASTERISER, else numba where it imports."""
     want = os.environ.get(ENV, "").strip().lower() or "numba"
     if want not in RASTERISERS:
-        raise ValueError(f"{ENV}={want!r}: one of {', '.join(RASTERISERS)}")
+        raise PsdError(f"{ENV}={want!r} is no rasteriser: set it to one of {', '.join(RASTERISERS)}, or unset it")
     if want == "numba" and _compiled() is None:
         return "pybullet"
     return want
@@ -137,10 +139,10 @@ def world_triangles(geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray,
 
 
 def _shade(ids, normal, colours, light, light_rgb, ambient, diffuse, specular, exponent, rgb):  # pragma: no cover
-    """TinyRenderer's shader on every pixel (rows already flipped or not: per pixel alike): the object `ids`' colours
-    (K × 3 in [0, 1]) lit along unit vector `light` → `rgb` (size × size × 3, float32 in [0, 1], in its byte
-    steps): intensity = ambient + diffuse·max(0, n·l) + specular·max(0, r_z)^exponent, r the light reflected about
-    the normal n; then floor(255·intensity), times the colour and the light's, each truncated, at most 255."""
+    """TinyRenderer's shader on every pixel: the object `ids`' colours (K × 3 in [0, 1]) lit along unit vector
+    `light` → `rgb` (size × size × 3, float32 in [0, 1], in its byte steps): each channel
+    min(255, floor(floor(255·colour) · (ambient + (diffuse·max(0, n·l) + specular·max(0, r_z)^exponent) · light))),
+    r the light reflected about the normal n (the ambient light is white, the key light `light_rgb`)."""
     h, w = ids.shape
     for i in range(h):
         for j in range(w):
@@ -150,11 +152,13 @@ def _shade(ids, normal, colours, light, light_rgb, ambient, diffuse, specular, e
             nl = nx * light[0] + ny * light[1] + nz * light[2]
             rx, ry, rz = 2 * nl * nx - light[0], 2 * nl * ny - light[1], 2 * nl * nz - light[2]
             rz = rz / (math.sqrt(rx * rx + ry * ry + rz * rz) + 1e-12)
-            spec = max(rz, 0.0) ** exponent
-            grey = math.floor(255.0 * (ambient + max(nl, 0.0) * diffuse + specular * spec))
+            rz = max(rz, 0.0)
+            spec = rz * rz if exponent == 2.0 else rz**exponent  # (a float power costs ~40 ns a pixel)
+            lit = max(nl, 0.0) * diffuse + specular * spec
             k = ids[i, j]
             for c in range(3):
-                rgb[i, j, c] = min(255.0, math.floor(math.floor(grey * colours[k, c]) * light_rgb[c])) / 255.0
+                byte = math.floor(math.floor(255.0 * colours[k, c]) * (ambient + lit * light_rgb[c]))
+                rgb[i, j, c] = min(255.0, byte) / 255.0
 
 
 def raster_raw(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p, look,

@@ -4,6 +4,10 @@ table's centre `view_fraction` of its side across, so ``mm_per_px = table_size *
 TinyRenderer has no anti-aliasing and no working cast shadows, so the image is supersampled
 and shadows / contact occlusion are shaded afterwards from the depth buffer.
 Mask values: 0 = table, k = particle_id + 1.
+
+The triangles are drawn by ``raster.py``, a compiled copy of TinyRenderer's rasteriser and shader
+(the same segmentation and heights, TinyRenderer's colour bytes bar a rare pixel; ~5x faster), or
+with ``PSDFACTORY_RASTERISER=pybullet`` (and where numba is missing) by TinyRenderer itself.
 """
 
 from __future__ import annotations
@@ -192,8 +196,12 @@ def downsample(a: np.ndarray, s: int) -> np.ndarray:
     """Box-filter anti-aliasing: mean over s×s blocks."""
     if s == 1:
         return a
-    h, w = a.shape[:2]
-    return a.reshape(h // s, s, w // s, s, *a.shape[2:]).mean(axis=(1, 3))
+    out = a[::s, ::s].astype(np.float32 if a.dtype == np.float32 else np.float64)
+    for i in range(s):  # block sums by strided adds: ~4x faster than a reshaped mean over two axes
+        for j in range(s):
+            if i or j:
+                out += a[i::s, j::s]
+    return out / (s * s)
 
 
 def shade_tiny(rgb: np.ndarray, ids: np.ndarray, height: np.ndarray, look: Look, p: RenderParams, px_mm: float,
