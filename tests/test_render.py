@@ -160,3 +160,24 @@ def test_the_rasteriser_is_chosen_by_the_environment(monkeypatch):
     monkeypatch.setenv(raster.ENV, "opengl")
     with pytest.raises(PsdError, match="PSDFACTORY_RASTERISER='opengl' is no rasteriser"):
         raster.rasteriser()
+
+
+def test_a_smooth_texture_octave_made_on_the_downsampling_blocks_survives_it_unchanged():
+    """fractal_noise(block=2) makes its octaves of sigma >= COARSE_OCTAVE_SIGMA_PX on 2 x 2 blocks:
+    what the image's 2 x 2 downsampling keeps of the texture is the same field, bar a box blur far
+    below the octave's sigma (its block means correlate > 0.99 with the full-resolution texture's,
+    with the same spread and the same grain size); the finer octave is made as before."""
+    from psdfactory.scene.render.tiny import COARSE_OCTAVE_SIGMA_PX, fractal_noise, white_layers
+
+    layers = white_layers(np.random.default_rng(0), (512, 512))
+    for sigmas in [(0.8, 3.3), (2.0, 8.2)]:
+        assert max(sigmas) >= COARSE_OCTAVE_SIGMA_PX
+        full, coarse = fractal_noise(layers, sigmas), fractal_noise(layers, sigmas, block=2)
+        assert coarse.shape == full.shape and coarse.dtype == np.float32
+        a, b = downsample(full, 2), downsample(coarse, 2)
+        assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.99
+        assert abs(b.std() / a.std() - 1) < 0.02
+        lag = [np.corrcoef(x[:, :-3].ravel(), x[:, 3:].ravel())[0, 1] for x in (a, b)]
+        assert abs(lag[0] - lag[1]) < 0.02
+    fine = fractal_noise(layers, (0.8, 1.2), block=2)  # no octave smooth enough: as without blocks
+    np.testing.assert_array_equal(fine, fractal_noise(layers, (0.8, 1.2)))

@@ -181,7 +181,7 @@ def raster_raw(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.nda
     clip = np.concatenate([tri, np.ones(tri.shape[:2] + (1,))], axis=2) @ to_clip.T
     depth = np.full((size, size), np.inf)
     ids = np.full((size, size), -1, np.int32)
-    normal = np.zeros((size, size, 3))
+    normal = np.zeros((size, size, 3), np.float32)
     kernel(np.ascontiguousarray(clip), np.ascontiguousarray(nrm), obj, size, depth, ids, normal)
     depth, ids, normal = depth[::-1], np.ascontiguousarray(ids[::-1]), normal[::-1]  # TinyRenderer's rows run upwards
     if (ids < 0).any():  # (the table fills every view: a pixel without it is a bug, not a look)

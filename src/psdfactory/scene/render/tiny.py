@@ -84,12 +84,27 @@ def white_layers(rng: np.random.Generator, shape: tuple[int, int], n: int = len(
     return [rng.standard_normal(shape).astype(np.float32) for _ in range(n)]
 
 
-def fractal_noise(layers: list[np.ndarray], sigmas_px: tuple[float, ...]) -> np.ndarray:
+# an octave at least this smooth (Gaussian sigma, supersampled px) is made on the blocks the image is
+# downsampled by, each block one value: what the downsampling would make of it (its blocks' means) but
+# for a box blur far below its sigma, at a quarter of the filtering (2x supersampled: the texture's
+# filters were a third of a paper scene's render)
+COARSE_OCTAVE_SIGMA_PX = 3.0
+
+
+def fractal_noise(layers: list[np.ndarray], sigmas_px: tuple[float, ...], block: int = 1) -> np.ndarray:
     """Octaves of smoothed white noise, summed and scaled to unit standard deviation: a grainy
-    texture whose amplitude (table_texture, surface_detail) is the sd of the relative brightness."""
+    texture whose amplitude (table_texture, surface_detail) is the sd of the relative brightness.
+    With `block` > 1 (the supersampling), an octave of sigma >= COARSE_OCTAVE_SIGMA_PX is smoothed
+    on the white noise's block means, at sigma / block, and each block takes its value."""
     out = np.zeros(layers[0].shape, dtype=np.float32)
     for white, s in zip(layers, sigmas_px, strict=True):
-        layer = ndimage.gaussian_filter(white, s)
+        h, w = white.shape
+        if block > 1 and s >= COARSE_OCTAVE_SIGMA_PX and h % block == 0 and w % block == 0:
+            coarse = downsample(white, block)  # white noise again, of sd 1 / block
+            layer = ndimage.gaussian_filter(coarse, s / block)
+            layer = np.repeat(np.repeat(layer, block, axis=0), block, axis=1)
+        else:
+            layer = ndimage.gaussian_filter(white, s)
         out += layer / (layer.std() + 1e-6)
     return out / (out.std() + 1e-6)
 
@@ -211,8 +226,8 @@ def shade_tiny(rgb: np.ndarray, ids: np.ndarray, height: np.ndarray, look: Look,
     # surface texture: the table's grain on table pixels, each particle's mottling on its own
     layers = white_layers(rng, ids.shape)
     table = ids == 0
-    tex = np.where(table, fractal_noise(layers, octaves_px(look.table_grain_mm, px_mm, s)),
-                   fractal_noise(layers, octaves_px(look.particle_grain_mm, px_mm, s)))
+    tex = np.where(table, fractal_noise(layers, octaves_px(look.table_grain_mm, px_mm, s), s),
+                   fractal_noise(layers, octaves_px(look.particle_grain_mm, px_mm, s), s))
     amp = np.asarray([look.table_texture, *look.surface_detail], dtype=np.float32)[ids]
     rgb = rgb * (1 + amp * tex)[..., None]
     rgb = downsample(rgb, s)
