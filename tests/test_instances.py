@@ -437,7 +437,7 @@ def test_tiny_training_writes_a_plain_model_file(tiny):
     assert len(rows) == 1 and float(rows[0]["train_loss"]) > 0
 
 
-def test_readout_of_footprints_and_size_map(tiny, tmp_path):
+def test_readout_of_footprints_and_size_map(tiny, tmp_path, monkeypatch):
     """train.instances.readout picks the read-out's statistics: the size map's too, or not."""
     from psdfactory.learn.train import train_from_params
 
@@ -469,7 +469,12 @@ def test_readout_of_footprints_and_size_map(tiny, tmp_path):
 
         path = (tmp_path / "other" if other == "footprints+size_map" else model_path.parent) / "model.pt"
         export(path, tmp_path / "onnx")
+        from psdfactory.deploy import predict
+
         img = str(root / "tiny" / "scenes" / "tiny-000001" / "image.png")
+        # (this few-step model may find no whole grain on a 48 px image, which predict refuses; what is
+        # compared here is the read-out through both engines)
+        monkeypatch.setattr(predict, "grain_count_problem", lambda *a: (None, None))
         ref = predict_files(path, [img])[0]
         got = predict_files(tmp_path / "onnx" / "model.onnx", [img])[0]
         keys = ("d10_mm", "d50_mm", "d90_mm")

@@ -181,3 +181,23 @@ def test_a_smooth_texture_octave_made_on_the_downsampling_blocks_survives_it_unc
         assert abs(lag[0] - lag[1]) < 0.02
     fine = fractal_noise(layers, (0.8, 1.2), block=2)  # no octave smooth enough: as without blocks
     np.testing.assert_array_equal(fine, fractal_noise(layers, (0.8, 1.2)))
+
+
+def test_without_numba_the_tiny_backend_falls_back_to_tinyrenderer(monkeypatch, caplog):
+    import builtins
+
+    from psdfactory.scene.render import raster
+
+    real_import = builtins.__import__
+
+    def no_numba(name, *a, **k):
+        if name == "numba":
+            raise ImportError("No module named 'numba'")
+        return real_import(name, *a, **k)
+
+    monkeypatch.delenv(raster.ENV, raising=False)
+    monkeypatch.setattr(raster, "_kernel", None)
+    monkeypatch.setattr(builtins, "__import__", no_numba)
+    with caplog.at_level("WARNING", logger="psdfactory.scene.render.raster"):
+        assert raster.rasteriser() == "pybullet"
+    assert any("numba is not installed" in r.message for r in caplog.records)

@@ -39,7 +39,7 @@ logger = logging.getLogger(__name__)
 RASTERISERS = ("numba", "pybullet")
 ENV = "PSDFACTORY_RASTERISER"
 SPECULAR_EXPONENT = 2.0  # TinyRenderer's, for a model without a specular map (found by fitting its output)
-SPECULAR_COEFF = 0.05  # the coefficient tiny.py gives getCameraImage (lightSpecularCoeff)
+SPECULAR_COEFF = 0.05  # the key light's specular coefficient (tiny.py gives TinyRenderer the same)
 
 _kernel = None
 
@@ -55,7 +55,7 @@ def rasteriser() -> str:
 
 
 def _compiled():
-    """The compiled kernel, or None where numba is not installed (then TinyRenderer renders)."""
+    """The compiled (rasterise, shade) kernels, or None where numba is not installed (then TinyRenderer renders)."""
     global _kernel
     if _kernel is None:
         try:

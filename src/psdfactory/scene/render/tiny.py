@@ -19,7 +19,7 @@ from scipy import ndimage
 
 from ..geometry import CM, Geometry, gc_paused
 from .look import Look, RenderParams, mm_per_px
-from .raster import camera_matrices, raster_raw
+from .raster import SPECULAR_COEFF, camera_matrices, raster_raw
 from .raster import rasteriser as raster_choice
 
 
@@ -173,7 +173,7 @@ def _tiny_raw(pb, spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.
             shadow=0,
             lightAmbientCoeff=look.ambient,
             lightDiffuseCoeff=look.light_intensity * (1 - look.ambient),
-            lightSpecularCoeff=0.05,
+            lightSpecularCoeff=SPECULAR_COEFF,
             renderer=pb.ER_TINY_RENDERER,
             flags=pb.ER_SEGMENTATION_MASK_OBJECT_AND_LINKINDEX,
             physicsClientId=cid,
