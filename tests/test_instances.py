@@ -394,6 +394,16 @@ def tiny_instance_params(cfg: dict) -> dict:
     return params
 
 
+@pytest.fixture()
+def few_grains_read(monkeypatch):
+    """The tiny fixture's one-epoch model finds no whole grain on a 48 px scene (one frame-filling "grain"), and
+    predict refuses such a reading (``predict.grain_count_problem``, tested in test_predict_inputs.py): the tests
+    of predict's machinery below read it all the same."""
+    from psdfactory.deploy import predict
+
+    monkeypatch.setattr(predict, "grain_count_problem", lambda *a: (None, None))
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """Two tiny 48-px scenes (train, val), their manifests, and one epoch of training."""
@@ -437,7 +447,7 @@ def test_tiny_training_writes_a_plain_model_file(tiny):
     assert len(rows) == 1 and float(rows[0]["train_loss"]) > 0
 
 
-def test_readout_of_footprints_and_size_map(tiny, tmp_path, monkeypatch):
+def test_readout_of_footprints_and_size_map(tiny, tmp_path, few_grains_read):
     """train.instances.readout picks the read-out's statistics: the size map's too, or not."""
     from psdfactory.learn.train import train_from_params
 
@@ -469,12 +479,7 @@ def test_readout_of_footprints_and_size_map(tiny, tmp_path, monkeypatch):
 
         path = (tmp_path / "other" if other == "footprints+size_map" else model_path.parent) / "model.pt"
         export(path, tmp_path / "onnx")
-        from psdfactory.deploy import predict
-
         img = str(root / "tiny" / "scenes" / "tiny-000001" / "image.png")
-        # (this few-step model may find no whole grain on a 48 px image, which predict refuses; what is
-        # compared here is the read-out through both engines)
-        monkeypatch.setattr(predict, "grain_count_problem", lambda *a: (None, None))
         ref = predict_files(path, [img])[0]
         got = predict_files(tmp_path / "onnx" / "model.onnx", [img])[0]
         keys = ("d10_mm", "d50_mm", "d90_mm")
@@ -516,7 +521,7 @@ def test_precision_auto_times_bf16_against_fp32_and_trains_in_the_faster(tiny, t
         assert np.isfinite(float(next(csv.DictReader(f))["train_loss"]))
 
 
-def test_predict_writes_overlays_masks_and_particles(tiny, tmp_path, capsys):
+def test_predict_writes_overlays_masks_and_particles(tiny, tmp_path, capsys, few_grains_read):
     from PIL import Image
 
     from psdfactory.cli import main
@@ -565,7 +570,7 @@ def test_predict_writes_overlays_masks_and_particles(tiny, tmp_path, capsys):
         assert im.size == (96, 96)
 
 
-def test_predict_reads_every_size_definition(tiny, tmp_path):
+def test_predict_reads_every_size_definition(tiny, tmp_path, few_grains_read):
     """The model reads its own definition (sieve), estimates the other solid ones with their own
     read-outs, and measures the footprint ones on the whole grains it finds."""
     from psdfactory import PsdError
@@ -646,7 +651,7 @@ def test_benchmark_times_network_and_watershed(tiny):
     assert r["paths"]["fp32"]["accuracy"]["n"] == 2
 
 
-def test_export_onnx_maps_and_predict_with_them(tiny, tmp_path):
+def test_export_onnx_maps_and_predict_with_them(tiny, tmp_path, few_grains_read):
     from psdfactory.learn.capability import detect
 
     if not detect().onnxruntime:
@@ -731,7 +736,7 @@ def test_the_fast_paths_find_the_same_grains_as_fp32(tiny, tmp_path):
     assert sum(int(b.max()) for b in base) >= 3  # grains were found to compare (not a vacuous pass)
 
 
-def test_predict_runs_a_model_pt_in_onnx_runtime_from_a_cached_copy(tiny, tmp_path, monkeypatch):
+def test_predict_runs_a_model_pt_in_onnx_runtime_from_a_cached_copy(tiny, tmp_path, monkeypatch, few_grains_read):
     """predict --runtime onnx / auto: the model.pt's network exported once into the cache (keyed by
     the file's hash), reloaded from there later, made again when the cached file is damaged; the
     readings and the grains the same as PyTorch's; auto follows the timing measured on this
