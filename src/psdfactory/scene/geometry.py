@@ -49,6 +49,23 @@ class Geometry:
         return v, f
 
 
+def global_faces(geometry: Geometry) -> np.ndarray:
+    """Every face (F, 3) as indices into ``geometry.vertices`` (its vertices' ids are per particle)."""
+    return geometry.faces + np.repeat(geometry.vert_offsets[:-1], np.diff(geometry.face_offsets))[:, None]
+
+
+def mesh_normals(v: np.ndarray, f: np.ndarray, smooth: bool) -> np.ndarray:
+    """Unit normals of the triangles `f` (F, 3) over vertices `v` (V, 3): each face's (F, 3), or with
+    `smooth` each vertex's (V, 3), the area-weighted mean of its faces' (shaded smooth)."""
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    if smooth:
+        vn = np.zeros_like(v)
+        for k in range(3):
+            np.add.at(vn, f[:, k], n)
+        n = vn
+    return n / (np.linalg.norm(n, axis=1, keepdims=True) + 1e-12)
+
+
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """(N, 4) unit quaternions x, y, z, w (pybullet's order) → (N, 3, 3) rotation matrices."""
     x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]

@@ -32,7 +32,7 @@ import os
 import numpy as np
 
 from ... import PsdError
-from ..geometry import CM, Geometry, quat_to_matrix
+from ..geometry import CM, Geometry, global_faces, mesh_normals, quat_to_matrix
 
 logger = logging.getLogger(__name__)
 
@@ -116,26 +116,17 @@ def _rasterise(clip, nrm, obj, size, depth, ids, normal):  # pragma: no cover - 
 def world_triangles(geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray,
                     smooth: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every particle's triangles in the world (F, 3, 3, pybullet's cm), their corners' normals
-    (F, 3, 3: the face's, or with `smooth` the area-weighted vertex normals, as ``tiny.visual_meshes``
-    hands them to TinyRenderer) and each triangle's particle index (F,)."""
+    (F, 3, 3: the face's, or with `smooth` the vertices', as ``tiny.visual_meshes`` hands them to
+    TinyRenderer: ``geometry.mesh_normals``) and each triangle's particle index (F,)."""
     n = len(geometry)
     nv, nf = np.diff(geometry.vert_offsets), np.diff(geometry.face_offsets)
     rot = quat_to_matrix(np.asarray(quats, float))
-    per_vertex = np.repeat(np.arange(n), nv)
-    v = np.einsum("vij,vj->vi", rot[per_vertex], geometry.vertices.astype(np.float64) * CM)
+    v = np.einsum("vij,vj->vi", rot[np.repeat(np.arange(n), nv)], geometry.vertices.astype(np.float64) * CM)
     v += np.repeat(np.asarray(pos_mm, float) * CM, nv, axis=0)
-    f = geometry.faces + np.repeat(geometry.vert_offsets[:-1], nf)[:, None]
-    tri = v[f]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    if smooth:
-        vn = np.zeros_like(v)
-        for k in range(3):
-            np.add.at(vn, f[:, k], fn)
-        nrm = vn[f]
-    else:
-        nrm = np.repeat(fn[:, None, :], 3, axis=1)
-    nrm = nrm / (np.linalg.norm(nrm, axis=2, keepdims=True) + 1e-12)
-    return tri, nrm, np.repeat(np.arange(n), nf)
+    f = global_faces(geometry)
+    normals = mesh_normals(v, f, smooth)
+    corners = normals[f] if smooth else np.repeat(normals[:, None, :], 3, axis=1)
+    return v[f], corners, np.repeat(np.arange(n), nf)
 
 
 def _shade(ids, normal, colours, light, light_rgb, ambient, diffuse, specular, exponent, rgb):  # pragma: no cover
@@ -164,11 +155,11 @@ def _shade(ids, normal, colours, light, light_rgb, ambient, diffuse, specular, e
 def raster_raw(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarray, p, look,
                camera: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What ``tiny.tiny_raw`` returns — (rgb float32 in [0, 1], ids int32 with 0 the table, height
-    above the table in mm) at `supersample`× — drawn by the compiled rasteriser. `camera`: (view,
-    projection, camera height in cm), the matrices as pybullet's functions give them."""
+    above the table in mm) at `supersample`× — drawn by the compiled rasteriser. `camera`: what
+    ``camera_matrices`` gives (the matrices as pybullet's functions give them)."""
     kernel, shader = _compiled()
     size = p.resolution * p.supersample
-    view, proj, height_cm = camera
+    view, proj, _, _, height_cm = camera
     T = float(spec["table_size"])
     tri, nrm, pid = world_triangles(geometry, pos_mm, quats, spec["shape_type"] in ("granule", "ellipsoid"))
     # the table: the top of tiny.py's box (1.5x the table's half side), all the camera sees of it

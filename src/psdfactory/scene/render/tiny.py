@@ -17,7 +17,7 @@ import math
 import numpy as np
 from scipy import ndimage
 
-from ..geometry import CM, Geometry, gc_paused
+from ..geometry import CM, Geometry, gc_paused, global_faces, mesh_normals
 from .look import Look, RenderParams, mm_per_px
 from .raster import SPECULAR_COEFF, camera_matrices, raster_raw
 from .raster import rasteriser as raster_choice
@@ -30,21 +30,16 @@ def visual_meshes(geometry: Geometry, smooth: bool, scale: float) -> list[tuple[
     share vertices with area-weighted vertex normals (smooth shading).
     """
     v = geometry.vertices.astype(np.float64) * scale
-    counts = np.diff(geometry.face_offsets)
-    f = geometry.faces + np.repeat(geometry.vert_offsets[:-1], counts)[:, None]  # global vertex ids
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    f = global_faces(geometry)
     out = []
     if smooth:
-        vn = np.zeros_like(v)
-        for k in range(3):
-            np.add.at(vn, f[:, k], fn)
-        vn /= np.linalg.norm(vn, axis=1, keepdims=True) + 1e-12
+        vn = mesh_normals(v, f, smooth=True)
         for i in range(len(geometry)):
             a, b = geometry.vert_offsets[i], geometry.vert_offsets[i + 1]
             local = geometry.faces[geometry.face_offsets[i] : geometry.face_offsets[i + 1]]
             out.append((v[a:b].tolist(), local.ravel().tolist(), vn[a:b].tolist()))
     else:
-        fn /= np.linalg.norm(fn, axis=1, keepdims=True) + 1e-12
+        fn = mesh_normals(v, f, smooth=False)
         tri = v[f].reshape(-1, 3)
         nrm = np.repeat(fn, 3, axis=0)
         for i in range(len(geometry)):
@@ -121,8 +116,7 @@ def tiny_raw(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.ndarr
 
     camera = camera_matrices(spec, geometry, pos_mm, p, look)
     if (rasteriser or raster_choice()) == "numba":
-        view, proj, _, _, height = camera
-        return raster_raw(spec, geometry, pos_mm, quats, p, look, (view, proj, height))
+        return raster_raw(spec, geometry, pos_mm, quats, p, look, camera)
     with gc_paused():
         return _tiny_raw(pb, spec, geometry, pos_mm, quats, p, look, camera)
 
