@@ -635,6 +635,34 @@ def test_evaluate_writes_segmentation_and_size_figures(tiny, tmp_path):
     assert (tmp_path / "ev" / "scatter.png").is_file()
 
 
+def test_evaluate_photos_says_when_a_photo_rests_on_few_grains_and_scores_it_all_the_same(tiny, tmp_path, caplog):
+    """Unlike predict (which refuses a reading from no whole grain), evaluate-photos scores every photo of its set,
+    and says in the log what predict would have refused or warned of (`predict.grain_count_problem`)."""
+    import logging
+
+    from psdfactory.cli import main
+    from psdfactory.config import validate
+    from psdfactory.deploy.predict import MIN_WHOLE_GRAINS
+
+    from .test_photo_sets import make_photo_set, photo_config, photo_params
+
+    _, model_path, _ = tiny
+    # two 80-px photos at 0.5 mm/px: 32 px at the tiny model's 1.25 mm/px, room for a handful of grains at most
+    folder = make_photo_set(tmp_path / "ph", size=(80, 80))
+    params = json.dumps({"photoset": photo_params(validate(photo_config(folder)), "field"), "precision": "fp32"})
+    out = tmp_path / "eval"
+    with caplog.at_level(logging.WARNING, logger="psdfactory"):
+        assert main(["evaluate-photos", "--params", params, "--model", str(model_path), "--out-dir", str(out)]) == 0
+    said = [r.getMessage() for r in caplog.records if "field/" in r.getMessage()]
+    for photo in ("a.png", "b.png"):
+        line = next((s for s in said if f"field/{photo}:" in s), "")
+        assert ("no grain found" in line or "touches the image's edge" in line
+                or f"fewer than 3 of them (at least {MIN_WHOLE_GRAINS}" in line), said
+    m = json.loads((out / "metrics.json").read_text())
+    assert set(m["photos"]) == {"a.png", "b.png"}  # scored all the same
+    assert all("detection" in r for r in m["photos"].values())
+
+
 def test_benchmark_times_network_and_watershed(tiny):
     from psdfactory.deploy.benchmark import benchmark
 
