@@ -203,3 +203,52 @@ def test_seed_spread_gives_the_photo_figures_as_drawn_and_with_outlines_restored
                                    [42, 7, 11], [], {}, metrics, {"instances": [4.0, 5.0, 4.0]}, True)
     row = next(line for line in md.splitlines() if "real/a.jpg" in line)
     assert "| 3 | 0.48 ± 0.35 → 0.47 ± 0.34 | 12.8 ± 0.8 % → 6.9 ± 0.8 % |" in row, row
+
+
+def test_the_scale_free_readout_scales_with_the_bed_and_fits_a_known_ratio():
+    """bench/readout_transfer.py's `ratio` read-outs: labels a fixed multiple of the visible d50 are fitted
+    back, and a bed whose every size is k times larger (the same image statistics otherwise) reads k times larger."""
+    from psdfactory.learn.instances.stats import STAT_NAMES
+
+    rt = bench_module("readout_transfer")
+    rng = np.random.default_rng(0)
+    n = 40
+    x = np.ones((n, len(STAT_NAMES)))
+    mm = [i for i, s in enumerate(STAT_NAMES) if s.endswith("_mm") or s == "mm_per_px"]
+    x[:, STAT_NAMES.index("d50_mm")] = rng.uniform(3, 12, n)
+    for s, f in (("d10_mm", 0.5), ("d90_mm", 1.8), ("d10_v_mm", 0.9), ("d50_v_mm", 1.5), ("d90_v_mm", 2.2),
+                 ("mean_mm", 1.1), ("std_mm", 0.6), ("mm_per_px", 0.08)):
+        x[:, STAT_NAMES.index(s)] = x[:, STAT_NAMES.index("d50_mm")] * f * rng.uniform(0.9, 1.1, n)
+    for s in ("map_d10_mm", "map_d50_mm", "map_d90_mm", "map_d50_v_mm"):
+        x[:, STAT_NAMES.index(s)] = x[:, STAT_NAMES.index("d50_mm")] * rng.uniform(0.8, 2.0, n)
+    x[:, STAT_NAMES.index("covered_fraction")] = rng.uniform(0.6, 0.9, n)
+    x[:, STAT_NAMES.index("log_density")] = x[:, STAT_NAMES.index("log_density_all")] = rng.uniform(0.5, 1.0, n)
+    v50 = x[:, STAT_NAMES.index("d50_mm")]
+    y = v50[:, None] * np.array([0.4, 0.9, 1.7])
+    for with_map in (True, False):
+        ro = rt.fit_ratio(x, y, with_map)
+        np.testing.assert_allclose(rt.apply_ratio(ro, x), y, rtol=0.02)
+        big = x.copy()
+        big[:, mm] *= 3.0
+        big[:, STAT_NAMES.index("log_density")] = np.log1p(np.expm1(x[:, STAT_NAMES.index("log_density")]) / 9)
+        big[:, STAT_NAMES.index("log_density_all")] = big[:, STAT_NAMES.index("log_density")]
+        np.testing.assert_allclose(rt.apply_ratio(ro, big), 3.0 * rt.apply_ratio(ro, x), rtol=1e-9)
+
+
+def test_the_cell_histogram_reads_percentiles_inside_the_bins_that_hold_them():
+    """bench/cnn_cell_head.py: a bed of one size class reads every percentile inside that class; area shares
+    turn into number shares (a bin of grains twice the size holds a quarter of the grains per pixel)."""
+    from psdfactory.learn.size_cells import BIN_EDGES_LOG2_PX, N_CLASSES
+
+    cc = bench_module("cnn_cell_head")
+    k = 5  # the class between edges 3 and 4 of BIN_EDGES_LOG2_PX
+    shares = np.zeros((1, N_CLASSES))
+    shares[0, 0], shares[0, k] = 0.3, 0.7  # the table does not count
+    p = np.log2(cc.histogram_percentiles(shares)[0])
+    assert (p >= BIN_EDGES_LOG2_PX[k - 2] - 1e-9).all() and (p <= BIN_EDGES_LOG2_PX[k - 1] + 1e-9).all()
+    assert p[0] < p[1] < p[2]
+    # equal areas in classes one octave apart: 4 times as many of the smaller grains, so d50 lies in the smaller
+    shares = np.zeros((1, N_CLASSES))
+    shares[0, 3], shares[0, 5] = 0.5, 0.5
+    d10, d50, d90 = np.log2(cc.histogram_percentiles(shares)[0])
+    assert d50 <= BIN_EDGES_LOG2_PX[2] + 1e-9 and d90 >= BIN_EDGES_LOG2_PX[3] - 1e-9
