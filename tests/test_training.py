@@ -341,7 +341,8 @@ def test_int8_export_is_checked_and_predicts_like_pytorch(dataset, trained, tmp_
     with pytest.raises(PsdError, match="int8 model refused"):
         export(model, tmp_path / "strict", int8_results=dataset, dataset="tiny", max_r2_change=-1)
     assert not list((tmp_path / "strict").glob("*int8*"))
-    rep = export(model, tmp_path / "exp", int8_results=dataset, dataset="tiny", max_r2_change=10)
+    # a budget every model meets (per-target R² on 2 near-equal test scenes runs to the thousands)
+    rep = export(model, tmp_path / "exp", int8_results=dataset, dataset="tiny", max_r2_change=float("inf"))
     assert rep["int8"]["calibration_images"] > 0 and (tmp_path / "exp" / "model.int8.onnx").is_file()
     img = dataset / "tiny" / "scenes" / "tiny-000008" / "image.png"
     ref = predict_files(model, [str(img)])[0]
@@ -405,6 +406,29 @@ def test_a_crafted_model_file_is_refused_and_runs_nothing(tmp_path, capsys):
     assert main(["predict", "--model", str(evil), str(img)]) == 2
     assert "refused" in capsys.readouterr().err
     assert not victim.exists()  # nothing in the file ran
+
+
+def test_the_accuracy_budget_holds_every_target_not_the_pooled_r2():
+    """A path that keeps the pooled R² (d10..d90 together: near 1 whatever one target does) but moves d90's
+    R² by 0.13 — as int8 did to a default ResNet-50 — is over the budget."""
+    from psdfactory.deploy.benchmark import choose_fast
+    from psdfactory.deploy.quantize import MAX_R2_CHANGE, r2_change
+    from psdfactory.learn.metrics import regression_metrics
+
+    rng = np.random.default_rng(0)
+    y = np.column_stack([rng.uniform(2, 4, 14), rng.uniform(7, 10, 14), rng.uniform(14, 16, 14)])
+    p32 = y + rng.normal(0, 0.3, y.shape)
+    p8 = p32.copy()
+    p8[:, 2] += rng.normal(0, 0.25, 14)  # d90 only, a little noisier
+    m32, m8 = regression_metrics(y, p32), regression_metrics(y, p8)
+    assert abs(m8["overall"]["r2"] - m32["overall"]["r2"]) < MAX_R2_CHANGE  # the pooled R² hardly moves ...
+    change, target = r2_change(m8, m32)
+    assert target == "d90" and change == pytest.approx(m8["d90"]["r2"] - m32["d90"]["r2"])
+    assert abs(change) > MAX_R2_CHANGE  # ... d90's does
+    assert r2_change(m32, m32) == (0.0, "d10")
+    paths = {"fp32": {"batched": {"images_per_s": 10}, "r2_change": 0.0},
+             "int8": {"batched": {"images_per_s": 80}, "r2_change": change}}
+    assert choose_fast(paths) == "fp32"
 
 
 def test_fast_path_is_the_fastest_within_the_accuracy_budget():

@@ -593,7 +593,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", default="train", metavar="NAME",
                    help="with --int8: the dataset (of the config's datasets) to calibrate and check int8 on")
     p.add_argument("--int8-max-r2-change", type=float, default=None, metavar="R2",
-                   help="refuse the int8 model if its overall R² on the test split moves more than this "
+                   help="refuse the int8 model if the R² of any target on the test split moves more than this "
                         "(default: the benchmark's accuracy budget, 0.005)")
     p.set_defaults(func=cmd_export)
 

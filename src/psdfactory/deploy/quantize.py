@@ -19,12 +19,23 @@ from torch import nn
 from .. import PsdError
 from ..io import atomic_path
 
-# A faster inference path (and an int8 export) must keep the overall R² on the test split
-# within ± this of the fp32 model's.
+# A faster inference path (and an int8 export) must keep the R² of every target (d10, d50, d90) on the test
+# split within ± this of the fp32 model's (`r2_change`). Not the pooled "overall" R²: pooling the three
+# targets spans their whole range (d10 to d90), so it stays near 1 and moved by 0.002 where int8 took
+# ResNet-50's d90 R² from 0.22 to 0.09 (docs/performance.md).
 MAX_R2_CHANGE = 0.005
 # ... and, for a model that finds grains, find the grains fp32 finds: instance-mask F1 against fp32's at least
 # this on every test image
 MIN_GRAIN_F1 = 0.99
+
+
+def r2_change(metrics: dict, base: dict) -> tuple[float, str]:
+    """The change of R² from `base` to `metrics` (`learn.metrics.regression_metrics` of the same scenes) of
+    the target that moved most, signed, and that target's name: what MAX_R2_CHANGE bounds."""
+    from ..psd import NAMES
+
+    name = max(NAMES, key=lambda n: abs(metrics[n]["r2"] - base[n]["r2"]))
+    return float(metrics[name]["r2"] - base[name]["r2"]), name
 
 
 def require_onnxruntime(what: str) -> None:
