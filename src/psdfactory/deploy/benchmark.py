@@ -27,8 +27,7 @@ from torch import nn
 from ..learn import capability
 from ..learn.capability import Capabilities
 from ..learn.models import count_parameters
-from ..psd import NAMES
-from .quantize import MAX_R2_CHANGE, MIN_GRAIN_F1, r2_change
+from .quantize import MAX_R2_CHANGE, MIN_GRAIN_F1, r2_change, r2_moves
 
 logger = logging.getLogger(__name__)
 
@@ -238,8 +237,8 @@ def benchmark_estimator(est, device: torch.device, results_root: Path | None, da
     for k, why in out["skipped"].items():
         logger.info(f"  (not tried: {k}: {why})")
     changes = ", ".join(f"{k} {v['r2_change']:+.4f} ({v['r2_change_target']})"
-                        + (f" (grain F1 vs fp32 {v['grain_f1_vs_fp32']:.3f})"
-                                                         if v.get("grain_f1_vs_fp32") is not None else "")
+                        + (f" (grain F1 vs fp32 {v['grain_f1_vs_fp32']:.3f})" if v.get("grain_f1_vs_fp32") is not None
+                           else "")
                         for k, v in out["paths"].items() if k not in ("fp32", "fast") and v["r2_change"] is not None)
     st = fast["stages"]
     logger.info(f"  fast path: {fast['name']} ({out['speedup_batched']:.2f}× fp32 batched; network "
@@ -269,7 +268,6 @@ def benchmark(model_path: Path, results_root: Path, dataset: str, batch: int, se
     fast = result["results"][-1]["paths"]
     result["r2_change"] = fast["fast"]["r2_change"]
     if fast["fp32"].get("accuracy"):
-        r2s = " / ".join(f"{fast['fp32']['accuracy'][n]['r2']:.3f} → {fast['fast']['accuracy'][n]['r2']:.3f}"
-                         for n in NAMES)
-        logger.info(f"R² {' / '.join(NAMES)}, fp32 → fast: {r2s} (largest change {result['r2_change']:+.4f})")
+        logger.info(f"R² fp32 → fast, {r2_moves(fast['fast']['accuracy'], fast['fp32']['accuracy'])} (largest "
+                    f"change {result['r2_change']:+.4f})")
     return result

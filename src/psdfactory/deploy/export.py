@@ -123,7 +123,7 @@ def export_int8(est, fp32_onnx: Path, out: Path, results_root: Path, dataset: st
     from ..learn.estimator import predictions, rows_readings
     from ..learn.evaluate import eval_rows
     from ..learn.metrics import regression_metrics
-    from .quantize import OrtModel, calibration_images, quantize_int8, r2_change
+    from .quantize import OrtModel, calibration_images, quantize_int8, r2_change, r2_moves
 
     size = est.meta["input_size"]
     calib = calibration_images(results_root, dataset, size)
@@ -145,7 +145,5 @@ def export_int8(est, fp32_onnx: Path, out: Path, results_root: Path, dataset: st
                        f"{len(y)} test scenes (change {change:+.4f}, allowed ±{max_r2_change} on every target); use "
                        "the fp32 model.onnx")
     tmp_out.replace(out)
-    r2s = " / ".join(f"{m32[n]['r2']:.3f} → {m8[n]['r2']:.3f}" for n in NAMES)
-    logger.info(f"int8: {out} (R² {' / '.join(NAMES)} {r2s} on {len(y)} test scenes; calibrated on {len(calib)} "
-                "images)")
+    logger.info(f"int8: {out} (R² {r2_moves(m8, m32)} on {len(y)} test scenes; calibrated on {len(calib)} images)")
     return info

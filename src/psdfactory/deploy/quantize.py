@@ -18,6 +18,7 @@ from torch import nn
 
 from .. import PsdError
 from ..io import atomic_path
+from ..psd import NAMES
 
 # A faster inference path (and an int8 export) must keep the R² of every target (d10, d50, d90) on the test
 # split within ± this of the fp32 model's (`r2_change`). Not the pooled "overall" R²: pooling the three
@@ -32,10 +33,13 @@ MIN_GRAIN_F1 = 0.99
 def r2_change(metrics: dict, base: dict) -> tuple[float, str]:
     """The change of R² from `base` to `metrics` (`learn.metrics.regression_metrics` of the same scenes) of
     the target that moved most, signed, and that target's name: what MAX_R2_CHANGE bounds."""
-    from ..psd import NAMES
-
     name = max(NAMES, key=lambda n: abs(metrics[n]["r2"] - base[n]["r2"]))
     return float(metrics[name]["r2"] - base[name]["r2"]), name
+
+
+def r2_moves(metrics: dict, base: dict) -> str:
+    """Each target's R² from `base` to `metrics`, for a log line: 'd10 / d50 / d90 0.219 → 0.185 / ...'."""
+    return f"{' / '.join(NAMES)} " + " / ".join(f"{base[n]['r2']:.3f} → {metrics[n]['r2']:.3f}" for n in NAMES)
 
 
 def require_onnxruntime(what: str) -> None:
