@@ -117,6 +117,10 @@ def main() -> None:
     ap.add_argument("--definitions", nargs="+", default=["sieve", "b-axis"])
     ap.add_argument("--out", type=Path, help="write the figures as JSON")
     a = ap.parse_args()
+    if a.out is not None:  # refused before any work: it must not overwrite what it reads
+        inputs = [Path(m) for m in a.model] + [Path(a.config)] + ([a.wider] if a.wider else [])
+        if a.out.is_dir() or any(a.out.resolve() == p.resolve() for p in inputs):
+            raise SystemExit(f"--out {a.out} is a folder or one of the inputs (a model or config): give a new file")
     configure_logging()
     root = Path(load_config(Path(a.config))["results"])
 

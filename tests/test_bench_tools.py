@@ -252,3 +252,21 @@ def test_the_cell_histogram_reads_percentiles_inside_the_bins_that_hold_them():
     shares[0, 3], shares[0, 5] = 0.5, 0.5
     d10, d50, d90 = np.log2(cc.histogram_percentiles(shares)[0])
     assert d50 <= BIN_EDGES_LOG2_PX[2] + 1e-9 and d90 >= BIN_EDGES_LOG2_PX[3] - 1e-9
+
+
+@pytest.mark.parametrize("out", ["model", "config", "folder"])
+def test_readout_transfer_refuses_an_out_file_that_is_an_input_before_any_work(tmp_path, out):
+    """bench/readout_transfer.py --out: the model, the config or a folder is refused at once, the file as it was."""
+    import subprocess
+    import sys
+
+    model, config = tmp_path / "model.pt", tmp_path / "config.yaml"
+    model.write_bytes(b"not read")
+    config.write_text("results: r\n")
+    target = {"model": model, "config": config, "folder": tmp_path}[out]
+    before = model.read_bytes(), config.read_text()
+    r = subprocess.run([sys.executable, str(REPO / "bench" / "readout_transfer.py"), "--model", str(model),
+                        "--config", str(config), "--out", str(target)],
+                       capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert r.returncode != 0 and "is a folder or one of the inputs" in r.stderr, r.stderr
+    assert (model.read_bytes(), config.read_text()) == before
