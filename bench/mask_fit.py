@@ -39,8 +39,7 @@ def predict_masks(model: Path, images: list[Path], out: Path, mm_per_px: float |
     cmd = [sys.executable, "-m", "psdfactory.cli", "-q", "predict", "--model", str(model), "--masks", str(out)]
     if mm_per_px is not None:
         cmd += ["--mm-per-px", str(mm_per_px)]
-    if auto_scale:
-        cmd += ["--auto-scale"]
+    cmd += ["--auto-scale" if auto_scale else "--no-auto-scale"]
     subprocess.run(cmd + [str(p) for p in images], check=True, stdout=subprocess.DEVNULL)
 
 

@@ -58,7 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     from psdfactory.cli import mm_per_px_arg
 
     ap.add_argument("--mm-per-px", type=mm_per_px_arg, default=None, help="the photos' scale (as predict's)")
-    ap.add_argument("--auto-scale", action="store_true", help="read them as predict --auto-scale does")
+    ap.add_argument("--auto-scale", action=argparse.BooleanOptionalAction, default=None,
+                    help="read them as predict --auto-scale / --no-auto-scale does (default: the model's own)")
     ap.add_argument("--window", type=int, default=600, help="px of the maps shown per side (default 600)")
     ap.add_argument("--out", default="photo_maps", help="folder for <photo stem>.png (default photo_maps/)")
     a = ap.parse_args(argv)
@@ -78,7 +79,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(str(e))
     if not est.finds_grains:
         ap.error(f"{a.model} is not a model that finds grains (arch {est.meta.get('arch')!r}): it has no maps")
-    est.auto_scale = a.auto_scale
+    if a.auto_scale is not None:
+        est.auto_scale = a.auto_scale
     seen: dict = {}
     read = est.read
 

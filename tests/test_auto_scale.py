@@ -15,6 +15,7 @@ from PIL import Image
 from scipy import ndimage
 
 from psdfactory.config import AUTO_SCALE_MARGIN, AUTO_SCALE_PROBE, LEGACY_AUTO_SCALE_PROBE
+from psdfactory.deploy import calibrate as calibrate_mod  # imported before any test patches predict.load_predictor
 from psdfactory.deploy import predict
 from psdfactory.deploy.predict import AUTO_SCALE_MIN_PX, choose_scale
 from psdfactory.learn.instances.estimator import InstanceEstimator, readout_problems
@@ -263,13 +264,92 @@ def test_predict_auto_scale_flag(sized_model, tmp_path):
     assert sized_model[0] == (128, 128) and (256, 256) not in sized_model
 
 
+@pytest.mark.parametrize("recipe", [True, False])
+def test_the_models_recipe_sets_predicts_default_and_the_flags_override_it(sized_model, monkeypatch, tmp_path,
+                                                                          caplog, recipe):
+    """A model whose recipe says so (train.instances.auto_scale → its meta) is read at the grains' scale
+    without --auto-scale, and at its own with --no-auto-scale; a model without it the other way round."""
+    from psdfactory.cli import main
+
+    meta = dict(META, maps=["foreground", "boundary", "distance", "size"], **SIZES, auto_scale=recipe)
+    monkeypatch.setattr(predict, "load_predictor", lambda path, device="cpu", runtime="torch":
+                        InstanceEstimator(dict(meta), lambda x: (sized_model.append(tuple(x.shape[-2:])),
+                                                                 blob_maps(x))[1]))
+    Image.fromarray(discs(256, 64)).save(tmp_path / "bed.png")
+    args = ["predict", "--model", "m.pt", "--mm-per-px", str(NET_MM), "--particles", str(tmp_path / "p.csv")]
+    coarser = (128, 128)
+    for flag, auto in ((None, recipe), ("--auto-scale", True), ("--no-auto-scale", False)):
+        sized_model.clear()
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="psdfactory.deploy.predict"):
+            assert main([*args, *([flag] if flag else []), str(tmp_path / "bed.png")]) == 0
+        assert (sized_model[0] == coarser) is auto and ((256, 256) in sized_model) is not auto
+        assert ("its recipe's train.instances.auto_scale" in caplog.text) is (flag is None and recipe)
+
+
+def test_calibrate_reads_as_predict_will_and_predict_says_when_it_reads_otherwise(sized_model, monkeypatch,
+                                                                                 tmp_path, caplog):
+    """calibrate reads the references as predict does with the model (its recipe's default, or the flag given),
+    records which, and predict warns where it reads a calibrated model's photos the other way."""
+    from psdfactory.cli import main
+    from psdfactory.learn import calibration, runtime
+
+    meta = dict(META, maps=["foreground", "boundary", "distance", "size"], **SIZES, auto_scale=True)
+    saved: dict = {}
+
+    def stand_in(path, device="cpu", runtime="torch"):
+        return InstanceEstimator(dict(saved.get("meta", meta)),
+                                 lambda x: (sized_model.append(tuple(x.shape[-2:])), blob_maps(x))[1])
+
+    monkeypatch.setattr(calibrate_mod, "load_predictor", stand_in)
+    monkeypatch.setattr(runtime, "load_checkpoint", lambda path: {"meta": dict(meta), "state_dict": {}})
+    monkeypatch.setattr(runtime, "meta_problems", lambda m: calibration.calibration_problems(m["calibration"]))
+    monkeypatch.setattr(runtime, "write_torch", lambda path, obj: saved.update(obj))
+    rows = ["image,d10_mm,d50_mm,d90_mm"]
+    for k, d in enumerate((40, 52, 64)):
+        Image.fromarray(discs(256, d)).save(tmp_path / f"bed{k}.png")
+        rows.append(f"bed{k}.png,{d * NET_MM * 0.9},{d * NET_MM},{d * NET_MM * 1.1}")
+    (tmp_path / "ref.csv").write_text("\n".join(rows) + "\n")
+    args = ["calibrate", "--model", "m.pt", "--reference", str(tmp_path / "ref.csv"), "--mm-per-px", str(NET_MM),
+            "--out", str(tmp_path / "cal.pt")]
+    for flag, auto in ((None, True), ("--no-auto-scale", False)):
+        saved.clear()
+        sized_model.clear()
+        assert main([*args, *([flag] if flag else []), str(tmp_path)]) == 0
+        assert saved["meta"]["calibration"]["auto_scale"] is auto
+        assert ((256, 256) in sized_model) is not auto  # read at the model's scale only without it
+    monkeypatch.setattr(predict, "load_predictor", stand_in)
+    for flag, warned in (("--auto-scale", True), ("--no-auto-scale", False), (None, True)):  # its recipe: on
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="psdfactory.deploy.predict"):
+            main(["predict", "--model", "cal.pt", "--mm-per-px", str(NET_MM), *([flag] if flag else []),
+                  str(tmp_path / "bed0.png")])
+        assert ("calibrated on photos read without the automatic scale" in caplog.text) is warned
+    assert calibration.calibration_problems(dict(saved["meta"]["calibration"], auto_scale="yes")) == [
+        "calibration.auto_scale must be true or false (how its photos were read)"]
+
+
+def test_train_instances_auto_scale_is_in_the_training_slice_only_when_on(tmp_path):
+    """Off (the schema default) it leaves the slice as it was, so no model trained before it retrains;
+    on, the instance settings carry it (into the meta)."""
+    from psdfactory.config import load_config, train_params
+    from psdfactory.learn.instances.training import InstanceSettings
+
+    assert "auto_scale" not in train_params(load_config("config/config.yaml"), "instances")["settings"]
+    on = train_params(load_config("config/gravel.yaml"), "instances")["settings"]
+    assert on["auto_scale"] is True and InstanceSettings.from_dict(on).auto_scale is True
+    off = train_params(load_config("config/config.yaml"), "instances")["settings"]
+    assert InstanceSettings.from_dict(off).auto_scale is False
+
+
 def test_a_photo_set_reads_as_predict_auto_scale_where_it_says_so(tmp_path):
     from psdfactory.photoset import resolve
 
     Image.fromarray(discs(64, 16)).save(tmp_path / "a.png")
     spec = {"folder": str(tmp_path), "mm_per_px": 0.5}
-    assert resolve("s", spec).auto_scale is False
+    assert resolve("s", spec).auto_scale is None  # as predict reads with each model by default
     assert resolve("s", dict(spec, auto_scale=True)).auto_scale is True
+    assert resolve("s", dict(spec, auto_scale=False)).auto_scale is False
 
 
 def test_training_records_the_validation_grains_sizes_at_both_scales():

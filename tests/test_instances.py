@@ -436,6 +436,7 @@ def test_tiny_training_writes_a_plain_model_file(tiny):
     assert set(meta["postprocess"]) >= {"threshold", "h"} and meta["maps"] == list(MAPS)
     assert meta["sieve_method"] == "min_feret"  # the schema default: the size map is measured, not (yet) better
     assert meta["tta"] == "none"  # the schema default: calibrated on the maps of the image alone, as it is run
+    assert meta["auto_scale"] is False  # the schema default: predict reads photos at the model's scale
     # the read-out reads what train.instances.readout names, fitted on the train and the val scene
     assert meta["readout"]["features"] == list(READOUTS[meta["readout_features"]])
     assert meta["readout"]["n_scenes"] == 2

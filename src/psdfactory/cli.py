@@ -296,7 +296,7 @@ def cmd_calibrate(a: argparse.Namespace) -> None:
 
     pick_device(a.device)
     block = calibrate(Path(a.model), Path(a.reference), a.images, Path(a.out), a.mm_per_px,
-                      size_definition=a.size_definition, device=a.device)
+                      size_definition=a.size_definition, device=a.device, auto_scale=a.auto_scale)
     print("\n".join(table_lines(block)), flush=True)
 
 
@@ -484,6 +484,17 @@ def _scale_arg(p: argparse.ArgumentParser, then: str) -> None:
                    help="scale of the images in mm per pixel (1e-4 to 1e3)" + then)
 
 
+def _auto_scale_arg(p: argparse.ArgumentParser, then: str) -> None:
+    p.add_argument("--auto-scale", action=argparse.BooleanOptionalAction, default=None,
+                   help="instance models, with --mm-per-px: where a photo's grains look larger than the grains the "
+                   "model trained on (cobbles under a model of finer rock), read it at the coarser scale that shows "
+                   "them at that size, as a first look at half the model's scale finds; the log says when. "
+                   "Grains larger than the network sees at once are otherwise cut along their texture. Default: "
+                   "the model's recipe (train.instances.auto_scale; on for config/gravel.yaml, off for the table "
+                   "scenes of the default config, whose looks can make grains look larger than they are: "
+                   "docs/photos.md)." + then)
+
+
 def _threads_arg(p: argparse.ArgumentParser, out_dir: str | None = None) -> None:
     """--threads, and with `out_dir` (its help) --out-dir: what a PyTorch job takes."""
     if out_dir:
@@ -570,13 +581,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="instance models: run an image larger than this at the network's scale in overlapping "
                    "tiles of this side (px, a multiple of 32), stitched into one result: memory for the network "
                    f"stays that of one tile (default: {PREDICT_TILE_PX})")
-    p.add_argument("--auto-scale", action="store_true",
-                   help="instance models, with --mm-per-px: where a photo's grains look larger than the grains the "
-                   "model trained on (cobbles under a model of finer rock), read it at the coarser scale that shows "
-                   "them at that size, as a first look at half the model's scale finds; the log says when. "
-                   "Grains larger than the network sees at once are otherwise cut along their texture. Off by "
-                   "default: a look the model was not trained on (e.g. bright tables) can make grains look larger "
-                   "than they are (docs/photos.md)")
+    _auto_scale_arg(p, "")
     p.add_argument("images", nargs="+", metavar="IMAGE",
                    help="image files (.png, .jpg, .tif, .bmp, .webp) and/or folders of them, subfolders included")
     p.set_defaults(func=cmd_predict)
@@ -619,6 +624,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "the definition the model was trained on); the calibrated model is corrected in it only")
     p.add_argument("--device", default="cpu", metavar="DEVICE",
                    help="where the model runs: cpu, auto (cuda when there is one), cuda, cuda:N or mps")
+    _auto_scale_arg(p, " Calibrate as you will predict: the calibration records which")
     p.add_argument("--out", required=True, metavar="FILE",
                    help="the calibrated model to write (.pt; not the model itself, the reference table or an image)")
     p.add_argument("images", nargs="+", metavar="IMAGE",

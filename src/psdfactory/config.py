@@ -704,5 +704,7 @@ def train_params(config: dict, arch: str) -> dict:
         datasets = out["settings"].pop("datasets", None)
         if datasets is not None:  # its own training data (train.<arch>.datasets) overrides train.datasets
             out["datasets"] = list(datasets)
+        if out["settings"].get("auto_scale") is False:  # in the slice only when on, as train.crop: the slices
+            del out["settings"]["auto_scale"]  # of before it stay as they were, and nothing retrains
     return out
 

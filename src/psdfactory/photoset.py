@@ -53,7 +53,7 @@ class PhotoSet:
     has_masks: bool
     has_reference: bool
     tables: tuple[Path, ...]  # the CSVs read (scale, reference)
-    auto_scale: bool = False  # read as predict --auto-scale reads (deploy.predict.choose_scale)
+    auto_scale: bool | None = None  # read as predict --auto-scale / --no-auto-scale reads; None: each model's default
     outline_band_px: float | str = 0  # px the reference masks keep between touching grains, or "auto" (measured)
 
     def files(self) -> list[Path]:
@@ -224,7 +224,7 @@ def resolve(name: str, spec: dict) -> PhotoSet:
                 raise PsdError(f"{where}: d10 <= d50 <= d90 does not hold ({', '.join(f'{v:g}' for v in d)})")
         photos.append(Photo(f.name, f, mm, size_hw, mask, d))
     return PhotoSet(name, folder, tuple(photos), spec.get("size_definition", "ellipse-minor"), masks is not None,
-                    ref is not None, tuple(tables), bool(spec.get("auto_scale", False)), band)
+                    ref is not None, tuple(tables), spec.get("auto_scale"), band)
 
 
 def resolve_all(config: dict) -> tuple[dict[str, PhotoSet], list[str]]:

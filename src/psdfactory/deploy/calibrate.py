@@ -140,10 +140,12 @@ def check_out(out: Path, model: Path, reference: Path, inputs: list[str]) -> Non
 
 
 def calibrate(model_path: Path, reference: Path, inputs: list[str], out: Path, mm_per_px: float | None = None,
-              size_definition: str | None = None, device: str = "cpu") -> dict:
+              size_definition: str | None = None, device: str = "cpu", auto_scale: bool | None = None) -> dict:
     """Predict the reference images with the model (uncalibrated: a calibrated model's own
     correction is left out and replaced), fit the correction (`learn.calibration`) and write the
-    model with it in its meta to `out` (the same weights). → the calibration block."""
+    model with it in its meta to `out` (the same weights). `auto_scale`: read them as predict
+    --auto-scale / --no-auto-scale does (None: the model's default); the block records which.
+    → the calibration block."""
     from ..learn.runtime import load_checkpoint, meta_problems, write_torch
 
     model_path, reference, out = Path(model_path), Path(reference), Path(out)
@@ -151,6 +153,8 @@ def calibrate(model_path: Path, reference: Path, inputs: list[str], out: Path, m
     names, values = read_references(reference)
     files = match_images(names, image_files(inputs), reference)
     est = load_predictor(model_path, device)
+    if auto_scale is not None:
+        est.auto_scale = bool(auto_scale)
     old = est.meta.get("calibration")
     est.meta = {k: v for k, v in est.meta.items() if k != "calibration"}  # its readings before any correction
     if old is not None:
@@ -172,6 +176,8 @@ def calibrate(model_path: Path, reference: Path, inputs: list[str], out: Path, m
                                   date, __version__)
     for ref, f in zip(block["references"], files, strict=True):
         ref["file"] = str(f)
+    if est.finds_grains:  # how its photos were read: predict warns where it reads them otherwise
+        block["auto_scale"] = bool(est.auto_scale)
     for line in cal.calibration_warnings(block):
         logger.warning(line)
     ckpt = load_checkpoint(model_path)

@@ -300,7 +300,8 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
 
     dev = pick_device(device)
     est = load_predictor(Path(model_path), str(dev))
-    est.auto_scale = photos.auto_scale  # the set's photos read as predict --auto-scale reads, where it says so
+    if photos.auto_scale is not None:  # the set's photos read as predict --auto-scale reads, where it says so
+        est.auto_scale = photos.auto_scale  # (else as predict reads them with this model by default)
     prec = pick_precision(precision, dev)
     if est.net is not None:
         est.run = torch_runner(est.inference_module(), dev, prec)

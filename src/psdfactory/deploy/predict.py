@@ -320,7 +320,7 @@ def choose_scale(est: Estimator, shorter_side: int, outputs_at, where: str = "")
         return 1.0
     logger.info(f"{where}: its grains look {again or seen:.0f} px at the model's scale, larger than on any of the "
                 f"model's validation images (at most {most:.0f} px): read at {scale:.3g} x the model's scale, where "
-                f"they look {trained:.0f} px as those do at the median (without predict --auto-scale: at its scale)")
+                f"they look {trained:.0f} px as those do at the median (with --no-auto-scale: at its scale)")
     return scale
 
 
@@ -527,14 +527,17 @@ def predict_rows(est: Estimator, files: list[Path], mm_per_px: float | None = No
 
 def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, device: str, outputs: dict | None = None,
                 size_definition: str | None = None, weighting: str | None = None,
-                tile: int | None = DEFAULT_TILE_PX, runtime: str = "torch", auto_scale: bool = False):
+                tile: int | None = DEFAULT_TILE_PX, runtime: str = "torch", auto_scale: bool | None = None):
     """The model (its runner and meta, described in the log), the image files to predict and what
     the d-values will be of (``reading``). `outputs`: an instance model's --overlay / --masks /
     --particles (refused for the others); `tile`: checked against the model's margin; `runtime`:
     the engine for a model.pt (`fastpath.RUNTIMES`); `auto_scale`: photos whose grains look larger
-    than the training grains read at a coarser scale (`choose_scale`)."""
+    than the training grains read at a coarser scale (`choose_scale`), or not; None: as the model's
+    recipe says (`Estimator.auto_scale`, from its meta)."""
     est = load_predictor(model_path, device, runtime)
-    est.auto_scale = auto_scale
+    asked = auto_scale is not None
+    if asked:
+        est.auto_scale = bool(auto_scale)
     meta = est.meta
     if not est.finds_grains and any((outputs or {}).values()):
         raise PsdError(f"--overlay, --masks and --particles need a model that finds grains (e.g. the instance "
@@ -547,17 +550,27 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
     for line in describe_model(meta, model_path, mm_per_px, est.tile_margin_px, tile):
         logger.info(line)
     logger.info(f"d10/d50/d90 of the particles' {what['size_definition']} size, {what['weighting']}-weighted")
-    if auto_scale and not est.finds_grains:
+    if asked and est.auto_scale and not est.finds_grains:
         logger.warning(f"--auto-scale has no effect here: {meta['arch']} reads d10/d50/d90 straight off the image at "
                        "its training scale; the automatic scale is for models that find grains (arch 'instances')")
-    elif auto_scale and mm_per_px is None:
+    elif asked and est.auto_scale and mm_per_px is None:
         logger.warning("--auto-scale has no effect without --mm-per-px: the photos are taken to be at the training "
                        "images' scale; give their mm per pixel for the automatic scale")
-    elif auto_scale and not all(k in meta for k in GRAIN_SIZE_KEYS):
+    elif est.auto_scale and est.finds_grains and not all(k in meta for k in GRAIN_SIZE_KEYS):
         logger.info("this model does not record how large its training grains look (trained by an older "
                     "psdfactory): photos are read at its scale only; train it again for the automatic scale")
+    elif not asked and est.auto_scale and est.finds_grains and mm_per_px is not None:
+        logger.info("this model reads a photo whose grains look larger than its training grains at a coarser scale "
+                    "(its recipe's train.instances.auto_scale, as --auto-scale); --no-auto-scale reads every photo "
+                    "at its own scale")
     if (note := calibration_note(meta, what)) is not None:  # refuses a reading the calibration is not of
         logger.info(note)
+        fitted = meta["calibration"].get("auto_scale")
+        if fitted is not None and est.finds_grains and fitted != est.auto_scale:
+            logger.warning(f"this model was calibrated on photos read {'with' if fitted else 'without'} the automatic "
+                           f"scale, and reads them {'with' if est.auto_scale else 'without'} it now: where that moves "
+                           f"a photo's scale the correction does not fit its reading; predict with "
+                           f"{'--auto-scale' if fitted else '--no-auto-scale'}, as it was calibrated")
     return est, files, what
 
 
@@ -565,7 +578,7 @@ def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None =
                   overlay_dir: Path | None = None, masks_dir: Path | None = None,
                   particles_out: Path | None = None, size_definition: str | None = None,
                   weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX,
-                  runtime: str = "torch", auto_scale: bool = False) -> list[dict]:
+                  runtime: str = "torch", auto_scale: bool | None = None) -> list[dict]:
     """One row per image. An instance model can also write each image's overlay and instance
     mask and a table of every measured particle (`GrainOutputs`)."""
     outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
@@ -743,7 +756,7 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
                        overlay_dir: Path | None = None, masks_dir: Path | None = None,
                        particles_out: Path | None = None, size_definition: str | None = None,
                        weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX,
-                       runtime: str = "torch", auto_scale: bool = False) -> tuple[int, int]:
+                       runtime: str = "torch", auto_scale: bool | None = None) -> tuple[int, int]:
     """`psdfactory predict`: each image read, predicted and written (to `emit` and to `out`'s
     partial file) before the next is read, so memory stays flat and an interrupted run keeps
     what it did; `out` appears only when every image is done. → (images, failed). An instance

@@ -277,6 +277,8 @@ def calibration_problems(block: object) -> list[str]:
                              "calibration.references")
         except PsdError as e:
             problems.append(str(e))
+    if not isinstance(block.get("auto_scale", False), bool):
+        problems.append("calibration.auto_scale must be true or false (how its photos were read)")
     bad = [k for k in ("loo", "uncalibrated") if not _errors_ok(block.get(k))]
     if bad:
         problems.append(f"calibration.{' and calibration.'.join(bad)} must give mape_pct and mae_mm per target")

@@ -78,6 +78,12 @@ GRAIN_SIZE_KEYS = ("grain_px", "grain_px_max", "grain_px_probe_max")
 GRAIN_PROBE_KEY = "grain_px_probe_scale"  # the factor grain_px_probe_max was seen at (absent: LEGACY_AUTO_SCALE_PROBE)
 
 
+def default_auto_scale(meta: dict) -> bool:
+    """Whether predict reads photos with this model at the grains' scale unless told otherwise: its recipe's
+    choice (`train.instances.auto_scale`, the meta's ``auto_scale``); False for a model without one."""
+    return bool(meta.get("auto_scale", False))
+
+
 class Estimator:
     """A trained model that reads d10/d50/d90 (mm) off images; see the module docstring."""
 
@@ -91,14 +97,14 @@ class Estimator:
     int8: ClassVar[bool] = True  # export and the benchmark may quantise it to int8
     output_doc: ClassVar[str] = "float32 Nx3: d10, d50, d90 in mm"
     output_name: ClassVar[str] = "d_mm"  # the ONNX output's name
-    # True (predict --auto-scale): predict reads a photo whose grains look larger than the validation grains
-    # (apparent_grain_px) at a coarser scale; False (the default): always at the model's scale
-    auto_scale: bool = False
-
     def __init__(self, meta: dict, run: Callable[[torch.Tensor], np.ndarray], net: nn.Module | None = None):
         self.meta = meta
         self.run = run  # normalised float N×3×H×W → the network's outputs (numpy)
         self.net = net
+        # True (predict --auto-scale): predict reads a photo whose grains look larger than the validation grains
+        # (apparent_grain_px) at a coarser scale; False: always at the model's scale. The model's own default is
+        # its recipe's (train.instances.auto_scale, in its meta); predict's --auto-scale/--no-auto-scale override it
+        self.auto_scale: bool = default_auto_scale(meta)
 
     # ---- what a subclass gives ---------------------------------------------------------------
 

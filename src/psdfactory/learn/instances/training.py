@@ -60,10 +60,12 @@ class InstanceSettings:
     sieve_method: str  # min_feret | ellipse_minor | size_map
     readout: str  # footprints | footprints+size_map: what the calibrated read-out reads (READOUTS)
     tta: str  # none | flips | d4: the views of each image whose maps are averaged (TTA_VIEWS)
+    auto_scale: bool  # the model's meta says predict reads photos at the grains' scale by default
 
     @classmethod
     def from_dict(cls, d: dict) -> InstanceSettings:
-        s = cls(**config_fields(cls, d, "train.instances"))
+        # auto_scale is in a slice only when on (config.train_params): absent means off
+        s = cls(**config_fields(cls, {"auto_scale": False, **d}, "train.instances"))
         if s.sieve_method not in SIEVE_METHODS:
             raise PsdError(f"train.instances.sieve_method must be one of {', '.join(SIEVE_METHODS)}")
         if s.readout not in READOUTS:
@@ -194,7 +196,9 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
                    lambda: {"val_loss": val_loss(model, x_val, t_val, device, precision, pw)},
                    len(x_train) * settings.crops_per_image, "crop", generators={"gen": gen}, scaler=scaler)
     ids = [(r["scene_id"], r["split"], *(r[t] for t in TARGETS)) for r in rows]
-    fp = fingerprint({**asdict(params), "settings": asdict(settings)}, ids)
+    # auto_scale is not in it: it changes the meta only (predict's default reading), not what the network learns
+    fp = fingerprint({**asdict(params), "settings": {k: v for k, v in asdict(settings).items() if k != "auto_scale"}},
+                     ids)
     res = fit(task, ARCH, params.epochs, params.early_stopping_patience, out_dir, fp,
               {"arch": ARCH, "maps": list(MAPS)})
     model.eval()
@@ -254,6 +258,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         "sieve_method": settings.sieve_method,
         "readout_features": settings.readout,
         "tta": settings.tta,
+        "auto_scale": settings.auto_scale,  # predict's default reading (--auto-scale / --no-auto-scale)
         "readout": readout,
         "readouts": readouts,  # the other solid size definitions (predict --size-definition)
         "boundary_pos_weight": pw,
