@@ -394,6 +394,16 @@ def test_a_reading_that_is_no_size_distribution_is_named_in_a_warning(folder, mo
     assert [float(r["d10_mm"]) for r in rows] == [-2.0, 1.0] and all(r["error"] == "" for r in rows)
     warned = [r.message for r in caplog.records if "no measurement" in r.message]
     assert len(warned) == 1 and "img-0000.png" in warned[0] and "-2 / 1 / 3 mm, a size <= 0" in warned[0]
+    # the file says it too, beside the reading (without the path the image column gives)
+    assert rows[0]["warning"] == warned[0].split("img-0000.png: ", 1)[1] and rows[1]["warning"] == ""
+    # a predictions file of before the warning column is read back by --resume as it was
+    old = tmp_path / "old.csv"
+    with open(old, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=[c for c in predict.COLUMNS if c != "warning"])
+        w.writeheader()
+        w.writerows({k: v for k, v in r.items() if k != "warning"} for r in rows)
+    assert [r["warning"] for r in predict.read_rows(old)] == ["", ""]
+    assert [r["d10_mm"] for r in predict.read_rows(old)] == [-2.0, 1.0]
 
 
 def test_a_reading_whose_grains_lie_outside_the_readouts_fit_is_named_in_a_warning(folder, model_file, tmp_path,

@@ -392,7 +392,9 @@ def load_predictor(model_path: Path, device: str = "cpu", runtime: str = "torch"
     return estimator_class(meta["arch"])(meta, lambda x: ort(x.numpy()))
 
 
-COLUMNS = ["image", *TARGETS, "size_definition", "weighting", "error"]
+# `warning`: what makes a reading doubtful though it was made (not a size distribution, few whole grains, a read-out
+# extrapolating), in words, as the log says it; empty for a plain reading and a failed one (its `error` says why)
+COLUMNS = ["image", *TARGETS, "size_definition", "weighting", "error", "warning"]
 
 
 def reading(meta: dict, requested: str | None, weighting: str | None = None) -> dict:
@@ -435,12 +437,20 @@ def not_a_psd(d_mm: np.ndarray) -> str | None:
     return None
 
 
-def warn_if_not_a_psd(where: str, arch: str, d_mm: np.ndarray) -> None:
-    """A warning naming the image (`where`) when a model's reading is no size distribution (`not_a_psd`)."""
+def not_a_psd_warning(where: str, arch: str, d_mm: np.ndarray) -> str | None:
+    """The warning, naming the image (`where`), for a model's reading that is no size distribution
+    (`not_a_psd`); None for a plausible one."""
     problem = not_a_psd(d_mm)
     if problem:
-        logger.warning(f"{where}: {arch} read {problem}: not a size distribution. The image is unlike those the "
-                       "model learnt (material, look, scale): its d-values are no measurement")
+        return (f"{where}: {arch} read {problem}: not a size distribution. The image is unlike those the model "
+                "learnt (material, look, scale): its d-values are no measurement")
+    return None
+
+
+def warn_if_not_a_psd(where: str, arch: str, d_mm: np.ndarray) -> None:
+    """`not_a_psd_warning` in the log."""
+    if (warning := not_a_psd_warning(where, arch, d_mm)) is not None:
+        logger.warning(warning)
 
 
 # A percentile of n grains rests on about n / 10 of them at d10 and at d90: under this many whole grains, on fewer
@@ -486,30 +496,32 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
         found, _ = read_at_scale(est, image, size_hw, mm_per_px, tile, str(path))
         if grains is not None:
             grains.write(path, image, size_hw, found.grains)
-        error, warning = grain_count_problem(str(path), found.grains)
+        error, few = grain_count_problem(str(path), found.grains)
         if error:
             raise PsdError(error)
-        if warning:
-            logger.warning(warning)
         d = est.in_definition(found, what["size_definition"], what["weighting"], str(path))
         outside = getattr(found.grains, "readout_outside", ())
+        extrapolates = None
         if outside and what["size_definition"] in SOLID_DEFINITIONS:
             held = (", held to the correction of the visible grains' sizes it learnt"
                     if getattr(est, "readout_held", False) else "")
-            logger.warning(f"{path}: its grains lie outside what {meta['arch']}'s read-out was fitted on "
-                           f"({'; '.join(outside[:3])}{'; ...' if len(outside) > 3 else ''}): the read-out "
-                           f"extrapolates{held}; check the d-values against the grains' own (--size-definition "
-                           "feret-min)")
+            extrapolates = (f"{path}: its grains lie outside what {meta['arch']}'s read-out was fitted on "
+                            f"({'; '.join(outside[:3])}{'; ...' if len(outside) > 3 else ''}): the read-out "
+                            f"extrapolates{held}; check the d-values against the grains' own (--size-definition "
+                            "feret-min)")
         d = apply_calibration(meta, what, d)  # a calibrated model's correction (psdfactory calibrate)
-        warn_if_not_a_psd(str(path), meta["arch"], d)
-        return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, **what, "error": ""}
+        warnings = [w for w in (few, extrapolates, not_a_psd_warning(str(path), meta["arch"], d)) if w]
+        for w in warnings:
+            logger.warning(w)
+        return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, **what, "error": "",
+                "warning": " | ".join(w.removeprefix(f"{path}: ") for w in warnings)}
     except PsdError as e:
         error = str(e)
     except MemoryError:
         error = f"{path}: out of memory while predicting"
     except Exception as e:  # one image must not stop the others: its row says what went wrong
         error = f"{path}: {type(e).__name__}: {e}"
-    return {"image": str(path), **dict.fromkeys(TARGETS), **what, "error": error}
+    return {"image": str(path), **dict.fromkeys(TARGETS), **what, "error": error, "warning": ""}
 
 
 def predict_rows(est: Estimator, files: list[Path], mm_per_px: float | None = None,
@@ -610,15 +622,15 @@ def _row_from_text(r: dict) -> dict | None:
     """A CSV row read back (strings) → a row; None for a malformed one (e.g. the half-written
     last line of a killed run)."""
     try:
-        if not r.get("image") or None in r.values() or set(r) != set(COLUMNS):
-            return None
+        if not r.get("image") or None in r.values() or set(r) not in (set(COLUMNS), set(COLUMNS) - {"warning"}):
+            return None  # (a file of before the warning column has none)
         nums = {k: (float(r[k]) if r[k] not in ("", None) else None) for k in COLUMNS[1:4]}
     except (TypeError, ValueError):
         return None
     if not r["error"] and None in nums.values():
         return None
     return {"image": r["image"], **nums, "size_definition": r["size_definition"], "weighting": r["weighting"],
-            "error": r["error"] or ""}
+            "error": r["error"] or "", "warning": r.get("warning") or ""}
 
 
 def read_rows(path: Path) -> list[dict]:
@@ -629,7 +641,8 @@ def read_rows(path: Path) -> list[dict]:
         if path.suffix.lower() == ".json":
             data = json.loads(path.read_text())
             rows = data if isinstance(data, list) else []
-            return [r for r in rows if isinstance(r, dict) and set(r) == set(COLUMNS)]
+            return [{"warning": "", **r} for r in rows
+                    if isinstance(r, dict) and set(r) in (set(COLUMNS), set(COLUMNS) - {"warning"})]
         with open(path, newline="") as f:
             return [r for r in map(_row_from_text, csv.DictReader(f)) if r is not None]
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, csv.Error) as e:
