@@ -171,6 +171,9 @@ def test_a_model_meta_with_bad_grain_sizes_is_refused():
     for bad in (-1, 0, float("nan"), "12", True, None, GRAIN_PX_MAX + 1):
         assert message in readout_problems(dict(meta, **dict(SIZES, grain_px=bad))), bad
     assert message in readout_problems(dict(meta, grain_px=12.5, grain_px_max=30.0))  # one missing
+    assert "auto_scale must be true or false (predict's default reading)" in readout_problems(
+        dict(meta, **SIZES, auto_scale="yes"))
+    assert not any("auto_scale" in p for p in readout_problems(dict(meta, **SIZES, auto_scale=True)))
     probe = "grain_px_probe_scale must be a factor of the scale between 0 and 1"
     assert probe not in readout_problems(dict(meta, **SIZES))
     for bad in (0, 1.0, 2, "0.5", float("nan")):

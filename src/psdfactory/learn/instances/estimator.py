@@ -321,6 +321,8 @@ def readout_problems(meta: dict) -> list[str]:
         problems.append(f"{GRAIN_PROBE_KEY} must be a factor of the scale between 0 and 1")
     if meta.get("tta", "none") not in TTA_VIEWS:
         problems.append(f"tta must be one of {', '.join(TTA_VIEWS)}")
+    if not isinstance(meta.get("auto_scale", False), bool):
+        problems.append("auto_scale must be true or false (predict's default reading)")
     if meta.get("sieve_method") not in SIEVE_METHODS:
         problems.append(f"sieve_method must be one of {', '.join(SIEVE_METHODS)}")
     elif meta["sieve_method"] == "size_map" and (not isinstance(maps, list) or "size" not in maps):
