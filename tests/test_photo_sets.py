@@ -556,3 +556,34 @@ def test_the_workflow_plans_a_job_per_model_and_photo_set_and_refuses_a_broken_o
     out = r.stdout + r.stderr
     assert r.returncode != 0 and "photos.field.masks: " in out and "b_mask.png is 39 x 40 px" in out, out[-2000:]
     assert not (tmp_path / "results").exists()
+
+
+def test_a_reading_that_is_no_size_distribution_is_said_beside_its_figures(tmp_path):
+    """A regressor far from its training images (here one whose head starts at d10 = -5 mm) reads a size
+    below zero: evaluate-photos scores the photo all the same and says why its d-values are no measurement in
+    the log, metrics.json, photos.csv and the report's photo table (marked, the warning under it)."""
+    import torch
+
+    from psdfactory.cli import main
+    from psdfactory.learn.models import TargetStats, build_model
+    from psdfactory.learn.runtime import save_model
+    from psdfactory.report import photo_sections
+
+    stats = dict(CNN_META["target_stats"], part_mean=[-5.0, 1.0, 1.0])
+    torch.manual_seed(0)
+    model, _ = build_model("resnet18", TargetStats(**stats), "none", size=64)
+    save_model(tmp_path / "model.pt", model, dict(CNN_META, target_stats=stats))
+    folder = make_photo_set(tmp_path / "ph", size=(80, 80))
+    params = json.dumps({"photoset": photo_params(validate(photo_config(folder)), "field"), "precision": "fp32"})
+    out = tmp_path / "eval"
+    assert main(["evaluate-photos", "--params", params, "--model", str(tmp_path / "model.pt"), "--out-dir",
+                 str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert all("a size <= 0: not a size distribution" in r["warning"] for r in m["photos"].values())
+    assert all(not r["warning"].startswith("field/") for r in m["photos"].values())  # the photo is its row's
+    rows = list(csv.DictReader(open(out / "photos.csv")))
+    assert [r["warning"] for r in rows] == [m["photos"][r["image"]]["warning"] for r in rows]
+    head, table, _, warned = photo_sections({"resnet18": {"field": m}})["field"]["tables"]["resnet18"]
+    d_col = head.index("d10 / d50 / d90 (mm)")
+    assert all(row[d_col].startswith("⚠ ") for row in table[:2]) and not table[2][d_col].startswith("⚠")
+    assert [w.split(":")[0] for w in warned] == ["⚠ a.png", "⚠ b.png"]

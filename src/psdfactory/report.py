@@ -595,8 +595,9 @@ def photo_table(m: dict) -> tuple[list[str], list[list[str]]]:
         found = [counts(r.get("n_found_off_border"), figures.get("n_reference")),
                  *(_fmt(det.get(k), 3) for k in ("precision", "recall", "f1")),
                  _error_pair(se.get("size_definition")), _error_pair(se.get("sieve"))]
-        return [label, *(found if grains else []), _three(r["psd_mm"], mm), _three(figures.get("reference_mm"), mm),
-                _three(figures["psd_rel_err"], _signed_pct)]
+        mark = "⚠ " if r.get("warning") else ""  # the warning is under the table
+        return [label, *(found if grains else []), mark + _three(r["psd_mm"], mm),
+                _three(figures.get("reference_mm"), mm), _three(figures["psd_rel_err"], _signed_pct)]
 
     def pooled_row(label: str, p: dict, figures: list[dict]) -> list[str]:
         det, se = p.get("detection") or {}, p.get("size_error") or {}
@@ -631,7 +632,9 @@ def photo_sections(photos: dict[str, dict[str, dict]]) -> dict[str, dict]:
                 f"{m['compared_at']}."), "tables": {}})
             what = (f"grains found, their {m['psd_size_definition']}" if m["finds_grains"] else
                     f"finds no grains: its own reading, {m['psd_size_definition']} size")
-            sec["tables"][arch] = (*photo_table(m), what)
+            # the warnings on its readings (evaluate-photos'), under its table: their d-values are marked ⚠ in it
+            warned = [f"⚠ {name}: {r['warning']}" for name, r in m["photos"].items() if r.get("warning")]
+            sec["tables"][arch] = (*photo_table(m), what, warned)
     return out
 
 
@@ -997,8 +1000,8 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
                _md_table(*paper3), ""]
     for s, models in photo_sections(photos).items():
         md += [f"## Photos: {s}", "", models["about"], "", PHOTOS_NOTE, ""]
-        for a, (head, rows, what) in models["tables"].items():
-            md += [f"### {a} ({what})", "", _md_table(head, rows), ""]
+        for a, (head, rows, what, warned) in models["tables"].items():
+            md += [f"### {a} ({what})", "", _md_table(head, rows), "", *(f"{w}  " for w in warned), ""]
         md += [f"![{c}](figures/{p.name})" for p, c in photo_figs.get(s, [])] + [""]
     if inst_rows:
         md += ["## Instance estimator", "", INSTANCE_NOTE, "", _md_table(*inst_compact), "",
@@ -1035,8 +1038,9 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
               f"<p class='note'>{e(paper_note)}</p>", _html_table(*paper2), _html_table(*paper3)]
     for s, models in photo_sections(photos).items():
         h += [f"<h2>Photos: {_wrap(s)}</h2>", f"<p>{e(models['about'])}</p>", f"<p class='note'>{e(PHOTOS_NOTE)}</p>"]
-        for a, (head, rows, what) in models["tables"].items():
-            h += [f"<h3>{_wrap(a)} <span class='sub'>({e(what)})</span></h3>", _html_table(head, rows)]
+        for a, (head, rows, what, warned) in models["tables"].items():
+            h += [f"<h3>{_wrap(a)} <span class='sub'>({e(what)})</span></h3>", _html_table(head, rows),
+                  *(f"<p class='note'>{e(w)}</p>" for w in warned)]
         h += [_img_tag(p, c) for p, c in photo_figs.get(s, [])]
     if inst_rows:
         h += ["<h2>Instance estimator</h2>", f"<p>{e(INSTANCE_NOTE)}</p>", _html_table(*inst_compact),

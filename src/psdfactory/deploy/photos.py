@@ -53,7 +53,7 @@ from .predict import (
     network_scale,
     read_at_scale,
     target_size,
-    warn_if_not_a_psd,
+    not_a_psd_warning,
 )
 
 logger = logging.getLogger(__name__)
@@ -260,7 +260,8 @@ TABLE_COLUMNS = ["image", "mm_per_px", "network_h", "network_w", "n_found", "n_f
                  *(f"{n}_mm" for n in NAMES), *(f"reference_{n}_mm" for n in NAMES), *(f"rel_err_{n}" for n in NAMES),
                  "psd_size_definition", *(f"reading_{n}_mm" for n in NAMES), "reading_size_definition",
                  "outline_band_px", "restored_f1", "restored_size_err_median", "restored_size_err_p90",
-                 *(f"restored_reference_{n}_mm" for n in NAMES), *(f"restored_rel_err_{n}" for n in NAMES), "overlay"]
+                 *(f"restored_reference_{n}_mm" for n in NAMES), *(f"restored_rel_err_{n}" for n in NAMES), "overlay",
+                 "warning"]
 # the figures given again against the reference with its outlines restored (PhotoScorer's outlines_restored)
 RESTORED_KEYS = ("band_px", "reference_mm", "reference_from", "psd_rel_err", "n_reference", "detection",
                  "size_error")
@@ -272,7 +273,7 @@ def table_row(photo: Photo, r: dict, psd_definition: str, reading: str) -> dict:
     se = {k: (r.get("size_error") or {}).get(k) or {} for k in ("size_definition", "sieve")}
     out = {"image": photo.name, "mm_per_px": photo.mm_per_px, "network_h": r["network_hw"][0],
            "network_w": r["network_hw"][1], "psd_size_definition": psd_definition,
-           "reading_size_definition": reading, "overlay": r["overlay"]}
+           "reading_size_definition": reading, "overlay": r["overlay"], "warning": r.get("warning", "")}
     out.update({k: r.get(k) for k in ("n_found", "n_found_off_border", "n_reference")})
     out.update({k: det.get(k) for k in ("tp", "fp", "fn", "left_out_found", "left_out_reference", "precision",
                                         "recall", "f1")})
@@ -324,16 +325,20 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         found, network_hw = read_at_scale(est, image, size_hw, photo.mm_per_px, DEFAULT_TILE_PX, str(photo.path))
         # its own reading as predict gives it (a calibrated model's correction applied)
         reading = Reading(apply_calibration(meta, own, found.d_mm), grains=found.grains)
-        warn_if_not_a_psd(f"{photos.name}/{photo.name}", arch, reading.d_mm)
-        for problem in grain_count_problem(f"{photos.name}/{photo.name}", found.grains):
-            if problem:  # scored all the same (a photo with no grain found scores F1 0): said, not refused
-                logger.warning(problem)
+        where = f"{photos.name}/{photo.name}"
+        # a reading that is no size distribution, or rests on no or few whole grains: scored all the same (a photo
+        # with no grain found scores F1 0), said in the log and beside its figures (metrics, photos.csv, the report)
+        warnings = [w for w in (not_a_psd_warning(where, arch, reading.d_mm),
+                                *grain_count_problem(where, found.grains)) if w]
+        for w in warnings:
+            logger.warning(w)
         ref_mask = read_mask(photo.mask, size_hw) if photo.mask is not None else None
         r = scorer.add(photo, reading, ref_mask)
         if restored is not None and ref_mask is not None:
             rest = restored.add(photo, reading, ref_mask)
             r["outlines_restored"] = {k: rest[k] for k in RESTORED_KEYS if k in rest}
         r["network_hw"] = [int(v) for v in network_hw]
+        r["warning"] = " | ".join(w.removeprefix(f"{where}: ") for w in warnings)
         r["mm_per_px"] = photo.mm_per_px
         found = reading.grains.mask if est.finds_grains else None
         r["overlay"] = f"{photo.stem}.png"

@@ -447,12 +447,6 @@ def not_a_psd_warning(where: str, arch: str, d_mm: np.ndarray) -> str | None:
     return None
 
 
-def warn_if_not_a_psd(where: str, arch: str, d_mm: np.ndarray) -> None:
-    """`not_a_psd_warning` in the log."""
-    if (warning := not_a_psd_warning(where, arch, d_mm)) is not None:
-        logger.warning(warning)
-
-
 # A percentile of n grains rests on about n / 10 of them at d10 and at d90: under this many whole grains, on fewer
 # than 3 each
 MIN_WHOLE_GRAINS = 30
