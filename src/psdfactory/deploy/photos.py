@@ -51,9 +51,9 @@ from .predict import (
     grain_count_problem,
     load_predictor,
     network_scale,
+    not_a_psd_warning,
     read_at_scale,
     target_size,
-    not_a_psd_warning,
 )
 
 logger = logging.getLogger(__name__)
