@@ -372,7 +372,7 @@ def test_predict_refuses_an_unknown_size_definition_in_one_line(capsys):
 
 
 def test_a_reading_that_is_no_size_distribution_is_named_in_a_warning(folder, model_file, tmp_path, monkeypatch,
-                                                                       caplog):
+                                                                       caplog, capsys):
     """A regressor far from its training images can read a size <= 0: predict keeps the row and
     says, naming the image, that these d-values are no measurement."""
     from psdfactory.cli import main
@@ -394,7 +394,10 @@ def test_a_reading_that_is_no_size_distribution_is_named_in_a_warning(folder, mo
     assert [float(r["d10_mm"]) for r in rows] == [-2.0, 1.0] and all(r["error"] == "" for r in rows)
     warned = [r.message for r in caplog.records if "no measurement" in r.message]
     assert len(warned) == 1 and "img-0000.png" in warned[0] and "-2 / 1 / 3 mm, a size <= 0" in warned[0]
-    # the file says it too, beside the reading (without the path the image column gives)
+    # the table on stdout marks it, and the file says it too, beside the reading (without the path the image
+    # column gives)
+    printed = [ln for ln in capsys.readouterr().out.splitlines() if "img-000" in ln]
+    assert "⚠ " in printed[0] and "a size <= 0" in printed[0] and "⚠" not in printed[1]
     assert rows[0]["warning"] == warned[0].split("img-0000.png: ", 1)[1] and rows[1]["warning"] == ""
     # a predictions file of before the warning column is read back by --resume as it was
     old = tmp_path / "old.csv"

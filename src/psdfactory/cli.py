@@ -268,7 +268,8 @@ def cmd_predict(a: argparse.Namespace) -> int:
         if r["error"]:
             print(f"{r['image']:<50} error: {r['error']}", flush=True)
         else:
-            print(f"{r['image']:<50} " + " ".join(f"{r[t]:>8.3f}" for t in TARGETS), flush=True)
+            doubt = "  ⚠ " + r["warning"] if r.get("warning") else ""  # as the log says it, and the file
+            print(f"{r['image']:<50} " + " ".join(f"{r[t]:>8.3f}" for t in TARGETS) + doubt, flush=True)
 
     out = Path(a.out) if a.out else None
     try:
