@@ -538,7 +538,8 @@ def test_predict_writes_overlays_masks_and_particles(tiny, tmp_path, capsys, few
     with open(tmp_path / "p.csv") as f:
         rows = list(csv.DictReader(f))
     assert [r["image"].split("/")[-2] for r in rows] == ["tiny-000000", "tiny-000001"]
-    assert list(rows[0]) == ["image", "d10_mm", "d50_mm", "d90_mm", "size_definition", "weighting", "error"]
+    assert list(rows[0]) == ["image", "d10_mm", "d50_mm", "d90_mm", "size_definition", "weighting", "error",
+                            "warning"]
     assert {(r["size_definition"], r["weighting"]) for r in rows} == {("sieve", "number")}  # the labels' definition
     assert all(float(r["d10_mm"]) <= float(r["d50_mm"]) <= float(r["d90_mm"]) for r in rows)
     with open(tmp_path / "particles.csv") as f:
