@@ -136,7 +136,8 @@ def one_photo(a: argparse.Namespace) -> dict:
         timing["read_hw"] = list(maps.shape[-2:])
         return read(maps, mm_per_px)
 
-    est.auto_scale = a.auto_scale
+    if a.auto_scale is not None:  # else the model's own default, as predict reads
+        est.auto_scale = a.auto_scale
     est.outputs, est.read = timed("network_s", outputs), timed("post_s", read_noting_size)
     mm = a.mm_per_px if a.mm_per_px else predict.network_scale(est.meta)
     photo = Path(a.photo)
@@ -171,7 +172,8 @@ def one_photo(a: argparse.Namespace) -> dict:
 def run_one(a: argparse.Namespace, photo: Path, mm: float, maps: Path | None, runtime: str) -> dict | None:
     """One photo through predict_one in a fresh process; its row, printed."""
     cmd = [sys.executable, __file__, "--one", "1", "--photo", str(photo), "--tile", str(a.tile), "--runtime", runtime,
-           "--auto-scale" if a.auto_scale else "--no-auto-scale", "--device", a.device]
+           "--device", a.device]
+    cmd += [] if a.auto_scale is None else ["--auto-scale" if a.auto_scale else "--no-auto-scale"]
     cmd += ["--model", a.model] if a.model else []
     cmd += ["--maps", str(maps)] if maps else []
     cmd += ["--mm-per-px", str(mm)] if a.true_scale else []
@@ -226,9 +228,9 @@ def main() -> None:
     ap.add_argument("--tile", type=int, default=None, help="tile side at the network's scale (default: predict's)")
     ap.add_argument("--runtimes", nargs="+", choices=PREDICT_RUNTIMES, default=["torch"],
                     help="with --model: predict's --runtime, each timed on every photo, interleaved (default: torch)")
-    ap.add_argument("--auto-scale", action=argparse.BooleanOptionalAction, default=False,
-                    help="predict --auto-scale (photos whose grains look larger than the validation grains read "
-                    "coarser; default: off, as predict)")
+    ap.add_argument("--auto-scale", action=argparse.BooleanOptionalAction, default=None,
+                    help="predict --auto-scale / --no-auto-scale (photos whose grains look larger than the validation "
+                    "grains read coarser; default: the model's own, as predict)")
     ap.add_argument("--device", default="cpu", help="the network's device: cpu, cuda (default: %(default)s)")
     ap.add_argument("--repeats", type=int, default=1, help="runs of each photo and runtime; medians are printed")
     ap.add_argument("--workdir", help="where the photos are made (default: a temporary folder)")

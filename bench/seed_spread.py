@@ -431,7 +431,12 @@ def main() -> None:
             params["seed"] = seed
             pjson = json.dumps(params, sort_keys=True, separators=(",", ":"))
             stamp = run / "params.json"
-            same = stamp.is_file() and stamp.read_text(encoding="utf-8") == pjson
+            # the same recipe: equal but for settings that change the model's meta only (config.training_recipe)
+            try:
+                same = stamp.is_file() and (psd_config.training_recipe(json.loads(stamp.read_text(encoding="utf-8")))
+                                            == psd_config.training_recipe(params))
+            except (json.JSONDecodeError, AttributeError):  # a stamp cut short or edited: not this recipe's
+                same = False
             if a.summarise_only:
                 done = same and all((run / f).is_file() for f in (
                     "model.pt", "eval/metrics.json", *(f"eval/photos/{n}/metrics.json" for n in photo_sets)))

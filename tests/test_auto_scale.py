@@ -322,7 +322,8 @@ def test_calibrate_reads_as_predict_will_and_predict_says_when_it_reads_otherwis
         assert saved["meta"]["calibration"]["auto_scale"] is auto
         assert ((256, 256) in sized_model) is not auto  # read at the model's scale only without it
     monkeypatch.setattr(predict, "load_predictor", stand_in)
-    for flag, warned in (("--auto-scale", True), ("--no-auto-scale", False), (None, True)):  # its recipe: on
+    assert saved["meta"]["auto_scale"] is False  # the calibrated model reads as its references were read
+    for flag, warned in (("--auto-scale", True), ("--no-auto-scale", False), (None, False)):
         caplog.clear()
         with caplog.at_level(logging.INFO, logger="psdfactory.deploy.predict"):
             main(["predict", "--model", "cal.pt", "--mm-per-px", str(NET_MM), *([flag] if flag else []),
@@ -330,12 +331,24 @@ def test_calibrate_reads_as_predict_will_and_predict_says_when_it_reads_otherwis
         assert ("calibrated on photos read without the automatic scale" in caplog.text) is warned
     assert calibration.calibration_problems(dict(saved["meta"]["calibration"], auto_scale="yes")) == [
         "calibration.auto_scale must be true or false (how its photos were read)"]
+    # without a scale the automatic one does nothing: nothing recorded, the model's default kept
+    saved.clear()
+    assert main([a for a in args if a not in ("--mm-per-px", str(NET_MM))] + [str(tmp_path)]) == 0
+    assert "auto_scale" not in saved["meta"]["calibration"] and saved["meta"]["auto_scale"] is True
 
 
 def test_train_instances_auto_scale_is_in_the_training_slice_only_when_on(tmp_path):
     """Off (the schema default) it leaves the slice as it was, so no model trained before it retrains;
-    on, the instance settings carry it (into the meta)."""
-    from psdfactory.config import load_config, train_params
+    on, the instance settings carry it (into the meta). Runs that differ in it alone are one recipe."""
+    from psdfactory.config import load_config, train_params, training_recipe
+    from psdfactory.report import same_recipe
+
+    gravel = load_config("config/gravel.yaml")
+    before = train_params(gravel, "instances")
+    before["settings"] = {k: v for k, v in before["settings"].items() if k != "auto_scale"}  # a run of before it
+    assert training_recipe(before) == training_recipe(train_params(gravel, "instances"))
+    assert same_recipe(dict(before, seed=7), gravel, "instances")
+    assert not same_recipe(dict(before, settings=dict(before["settings"], lr=1.0)), gravel, "instances")
     from psdfactory.learn.instances.training import InstanceSettings
 
     assert "auto_scale" not in train_params(load_config("config/config.yaml"), "instances")["settings"]

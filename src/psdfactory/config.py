@@ -686,6 +686,19 @@ def main_training_dataset(config: dict) -> str:
     return config["train"]["datasets"][0]
 
 
+# train.<arch> settings that change the model's meta only (how predict reads with it), not what it learns: runs
+# that differ in them are one recipe (the training's fingerprint, report.same_recipe, bench/seed_spread.py)
+META_ONLY_SETTINGS = ("auto_scale",)
+
+
+def training_recipe(params: dict) -> dict:
+    """A `train_params` slice without the settings that change the model's meta only (META_ONLY_SETTINGS)."""
+    out = dict(params)
+    if isinstance(out.get("settings"), dict):
+        out["settings"] = {k: v for k, v in out["settings"].items() if k not in META_ONLY_SETTINGS}
+    return out
+
+
 def train_params(config: dict, arch: str) -> dict:
     t = config["train"]
     keys = ("datasets", "pretrained", "epochs", "batch_size", "lr", "weight_decay", "lr_factor", "lr_patience",

@@ -19,6 +19,7 @@ from .config import (
     rerender_splits,
     train_params,
     trained_datasets,
+    training_recipe,
 )
 from .io import atomic_path, copy_file, pyplot, read_json, save_figure
 from .manifest import read_shards
@@ -806,8 +807,8 @@ RECIPE_FREE = ("seed", "precision", "device")  # what a seed spread may change w
 def same_recipe(stamp: dict, config: dict, arch: str) -> bool:
     """Whether a seed-spread run's training params (its params.json) are this config's recipe for
     `arch`: equal but for the training seed, the precision and the device."""
-    mine = train_params(config, arch)
-    return ({k: v for k, v in stamp.items() if k not in RECIPE_FREE}
+    mine = training_recipe(train_params(config, arch))
+    return ({k: v for k, v in training_recipe(stamp).items() if k not in RECIPE_FREE}
             == {k: v for k, v in mine.items() if k not in RECIPE_FREE})
 
 

@@ -176,12 +176,14 @@ def calibrate(model_path: Path, reference: Path, inputs: list[str], out: Path, m
                                   date, __version__)
     for ref, f in zip(block["references"], files, strict=True):
         ref["file"] = str(f)
-    if est.finds_grains:  # how its photos were read: predict warns where it reads them otherwise
-        block["auto_scale"] = bool(est.auto_scale)
+    if est.finds_grains and mm_per_px is not None:  # how its photos were read (without a scale: at the model's
+        block["auto_scale"] = bool(est.auto_scale)  # scale either way); predict warns where it reads them otherwise
     for line in cal.calibration_warnings(block):
         logger.warning(line)
     ckpt = load_checkpoint(model_path)
     meta = {**ckpt["meta"], "calibration": block}
+    if "auto_scale" in block:  # the calibrated model reads photos as its references were read, unless told otherwise
+        meta["auto_scale"] = block["auto_scale"]
     problems = meta_problems(meta)
     if problems:  # what predict would refuse: never written
         raise PsdError(f"the calibrated model's meta is refused: {'; '.join(problems)}")

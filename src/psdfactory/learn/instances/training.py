@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ... import PsdError, __version__
-from ...config import AUTO_SCALE_PROBE, config_fields
+from ...config import AUTO_SCALE_PROBE, config_fields, training_recipe
 from ...io import read_png
 from ...psd import NAMES, SOLID_DEFINITIONS, TARGETS, definition_targets
 from ..augment import TTA_VIEWS, photometric
@@ -196,9 +196,8 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
                    lambda: {"val_loss": val_loss(model, x_val, t_val, device, precision, pw)},
                    len(x_train) * settings.crops_per_image, "crop", generators={"gen": gen}, scaler=scaler)
     ids = [(r["scene_id"], r["split"], *(r[t] for t in TARGETS)) for r in rows]
-    # auto_scale is not in it: it changes the meta only (predict's default reading), not what the network learns
-    fp = fingerprint({**asdict(params), "settings": {k: v for k, v in asdict(settings).items() if k != "auto_scale"}},
-                     ids)
+    # without the settings that change the meta only (predict's default reading), not what the network learns
+    fp = fingerprint(training_recipe({**asdict(params), "settings": asdict(settings)}), ids)
     res = fit(task, ARCH, params.epochs, params.early_stopping_patience, out_dir, fp,
               {"arch": ARCH, "maps": list(MAPS)})
     model.eval()
