@@ -435,7 +435,7 @@ def main() -> None:
             try:
                 same = stamp.is_file() and (psd_config.training_recipe(json.loads(stamp.read_text(encoding="utf-8")))
                                             == psd_config.training_recipe(params))
-            except (json.JSONDecodeError, AttributeError):  # a stamp cut short or edited: not this recipe's
+            except (TypeError, ValueError):  # a stamp cut short (JSONDecodeError) or edited: not this recipe's
                 same = False
             if a.summarise_only:
                 done = same and all((run / f).is_file() for f in (

@@ -53,6 +53,7 @@ from .predict import (
     network_scale,
     not_a_psd_warning,
     read_at_scale,
+    say_warnings,
     target_size,
 )
 
@@ -328,17 +329,15 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         where = f"{photos.name}/{photo.name}"
         # a reading that is no size distribution, or rests on no or few whole grains: scored all the same (a photo
         # with no grain found scores F1 0), said in the log and beside its figures (metrics, photos.csv, the report)
-        warnings = [w for w in (not_a_psd_warning(where, arch, reading.d_mm),
-                                *grain_count_problem(where, found.grains)) if w]
-        for w in warnings:
-            logger.warning(w)
+        warning = say_warnings(where, [not_a_psd_warning(where, arch, reading.d_mm),
+                                       *grain_count_problem(where, found.grains)], logger)
         ref_mask = read_mask(photo.mask, size_hw) if photo.mask is not None else None
         r = scorer.add(photo, reading, ref_mask)
         if restored is not None and ref_mask is not None:
             rest = restored.add(photo, reading, ref_mask)
             r["outlines_restored"] = {k: rest[k] for k in RESTORED_KEYS if k in rest}
         r["network_hw"] = [int(v) for v in network_hw]
-        r["warning"] = " | ".join(w.removeprefix(f"{where}: ") for w in warnings)
+        r["warning"] = warning
         r["mm_per_px"] = photo.mm_per_px
         found = reading.grains.mask if est.finds_grains else None
         r["overlay"] = f"{photo.stem}.png"

@@ -395,6 +395,8 @@ def load_predictor(model_path: Path, device: str = "cpu", runtime: str = "torch"
 # `warning`: what makes a reading doubtful though it was made (not a size distribution, few whole grains, a read-out
 # extrapolating), in words, as the log says it; empty for a plain reading and a failed one (its `error` says why)
 COLUMNS = ["image", *TARGETS, "size_definition", "weighting", "error", "warning"]
+# the column sets --resume reads back: a file of before the warning column has none
+READABLE_COLUMNS = (frozenset(COLUMNS), frozenset(COLUMNS) - {"warning"})
 
 
 def reading(meta: dict, requested: str | None, weighting: str | None = None) -> dict:
@@ -445,6 +447,15 @@ def not_a_psd_warning(where: str, arch: str, d_mm: np.ndarray) -> str | None:
         return (f"{where}: {arch} read {problem}: not a size distribution. The image is unlike those the model "
                 "learnt (material, look, scale): its d-values are no measurement")
     return None
+
+
+def say_warnings(where: str, warnings: list[str | None], log: logging.Logger = logger) -> str:
+    """Each warning about one image's reading (None: none) to the log as it is, and all of them as the
+    `warning` cell of its row: without the leading `where` the row's image names already, joined by " | "."""
+    said = [w for w in warnings if w]
+    for w in said:
+        log.warning(w)
+    return " | ".join(w.removeprefix(f"{where}: ") for w in said)
 
 
 # A percentile of n grains rests on about n / 10 of them at d10 and at d90: under this many whole grains, on fewer
@@ -504,11 +515,9 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
                             f"extrapolates{held}; check the d-values against the grains' own (--size-definition "
                             "feret-min)")
         d = apply_calibration(meta, what, d)  # a calibrated model's correction (psdfactory calibrate)
-        warnings = [w for w in (few, extrapolates, not_a_psd_warning(str(path), meta["arch"], d)) if w]
-        for w in warnings:
-            logger.warning(w)
+        warning = say_warnings(str(path), [few, extrapolates, not_a_psd_warning(str(path), meta["arch"], d)])
         return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, **what, "error": "",
-                "warning": " | ".join(w.removeprefix(f"{path}: ") for w in warnings)}
+                "warning": warning}
     except PsdError as e:
         error = str(e)
     except MemoryError:
@@ -616,8 +625,8 @@ def _row_from_text(r: dict) -> dict | None:
     """A CSV row read back (strings) → a row; None for a malformed one (e.g. the half-written
     last line of a killed run)."""
     try:
-        if not r.get("image") or None in r.values() or set(r) not in (set(COLUMNS), set(COLUMNS) - {"warning"}):
-            return None  # (a file of before the warning column has none)
+        if not r.get("image") or None in r.values() or set(r) not in READABLE_COLUMNS:
+            return None
         nums = {k: (float(r[k]) if r[k] not in ("", None) else None) for k in COLUMNS[1:4]}
     except (TypeError, ValueError):
         return None
@@ -635,8 +644,7 @@ def read_rows(path: Path) -> list[dict]:
         if path.suffix.lower() == ".json":
             data = json.loads(path.read_text())
             rows = data if isinstance(data, list) else []
-            return [{"warning": "", **r} for r in rows
-                    if isinstance(r, dict) and set(r) in (set(COLUMNS), set(COLUMNS) - {"warning"})]
+            return [{"warning": "", **r} for r in rows if isinstance(r, dict) and set(r) in READABLE_COLUMNS]
         with open(path, newline="") as f:
             return [r for r in map(_row_from_text, csv.DictReader(f)) if r is not None]
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, csv.Error) as e:
