@@ -85,18 +85,3 @@ def test_d4_keeps_every_pixel():
     out = augment_d4(x, _gen())
     for i in range(2):
         assert sorted(out[i].flatten().tolist()) == sorted(x[i].flatten().tolist())
-
-
-def test_random_crop_takes_a_window_of_each_image_with_all_its_channels():
-    from psdfactory.learn.augment import random_crop
-
-    x = torch.arange(2 * 4 * 20 * 20, dtype=torch.int32).reshape(2, 4, 20, 20)
-    out = random_crop(x, 9, _gen(3))
-    assert out.shape == (2, 4, 9, 9)
-    for i in range(2):  # a contiguous window of image i, the same window in every channel
-        r, c = divmod(int(out[i, 0, 0, 0] - x[i, 0, 0, 0]), 20)
-        assert torch.equal(out[i], x[i, :, r : r + 9, c : c + 9])
-    assert torch.equal(random_crop(x, 9, _gen(3)), out)  # reproducible
-    assert random_crop(x, 20, _gen(3)) is x and random_crop(x, 24, _gen(3)) is x  # the whole image
-    with pytest.raises(ValueError, match="at least 8"):
-        random_crop(x, 4, _gen(3))

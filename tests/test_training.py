@@ -756,24 +756,26 @@ def test_size_cells_train_a_plain_regressor_and_resume(dataset, tmp_path, monkey
     assert (tmp_path / "bf16" / "model.pt").is_file()
 
 
-def test_crop_trains_on_windows_with_the_size_cells_and_reads_whole_images(dataset, tmp_path, monkeypatch):
+def test_crop_trains_on_windows_labelled_by_their_particles_and_reads_whole_images(dataset, tmp_path, monkeypatch):
     """train.crop: each training step sees random windows of the images (and of their size codes,
-    the dense task's fourth channel) at the same scale; the model reads whole images; the windows
-    are the seed's (two runs give the same losses) and differ from the whole-image run."""
+    the dense task's fourth channel) at the same scale, each labelled by the particles whose centre
+    lies in it; the model reads whole images; the windows are the seed's (two runs give the same
+    losses, and a run interrupted and resumed too) and differ from the whole-image run."""
     import csv
 
     from psdfactory.learn import cnn as cnn_mod
+    from psdfactory.learn import windows as windows_mod
     from psdfactory.learn.runtime import load_model
 
     seen = []
-    real = cnn_mod.random_crop
+    real = windows_mod.SceneWindows.__getitem__
 
-    def spy(x, size, gen):
-        out = real(x, size, gen)
-        seen.append((tuple(x.shape), tuple(out.shape)))
-        return out
+    def spy(self, i):
+        x, y = real(self, i)
+        seen.append((tuple(x.shape), y.numpy().copy(), self.scenes[i][1].numpy().copy()))
+        return x, y
 
-    monkeypatch.setattr(cnn_mod, "random_crop", spy)
+    monkeypatch.setattr(windows_mod.SceneWindows, "__getitem__", spy)
     validated = []
     real_predict = cnn_mod.predict_batches
 
@@ -787,7 +789,10 @@ def test_crop_trains_on_windows_with_the_size_cells_and_reads_whole_images(datas
     for name in ("a", "b"):
         cnn_mod.CnnRegressor.train(p, dataset, tmp_path / name)
         losses.append([float(r["train_loss"]) for r in csv.DictReader(open(tmp_path / name / "history.csv"))])
-    assert seen and all(s[1][0] == s[0][0] and s[0][1] == 4 and s[1][1:] == (4, 40, 40) for s in seen)
+    assert seen and all(shape == (4, 40, 40) for shape, _, _ in seen)
+    window_y, scene_y = np.array([s[1] for s in seen]), np.array([s[2] for s in seen])
+    assert (np.diff(window_y, axis=1) >= 0).all()  # d10 <= d50 <= d90
+    assert not np.allclose(window_y, scene_y)  # a window's labels are its particles', not the scene's
     assert validated and set(validated) == {(64, 64)}  # validation reads whole images
     assert losses[0] == losses[1]
     model, meta = load_model(tmp_path / "a" / "model.pt")
@@ -795,6 +800,16 @@ def test_crop_trains_on_windows_with_the_size_cells_and_reads_whole_images(datas
     cnn_mod.CnnRegressor.train(params(size_cells=1.0, epochs=2, input_size=64), dataset, tmp_path / "whole")
     whole = [float(r["train_loss"]) for r in csv.DictReader(open(tmp_path / "whole" / "history.csv"))]
     assert whole != losses[0]
+    out = interrupted_then_resumed(p, dataset, tmp_path / "resumed", monkeypatch)
+    resumed = [float(r["train_loss"]) for r in csv.DictReader(open(out / "history.csv"))]
+    np.testing.assert_allclose(resumed, losses[0], rtol=1e-5)  # the windows' generator is in the checkpoint
+
+
+def test_crop_is_refused_with_a_pack_which_holds_no_particle_positions(tmp_path):
+    from psdfactory.learn.cnn import pack_data
+
+    with pytest.raises(PsdError, match=r"train.crop = 40: each window is labelled by the particles inside it"):
+        pack_data(params(crop=40), tmp_path / "pack", 64, False, 0, None, crop=40)
 
 
 def test_crop_size_is_off_at_or_above_the_input_and_refuses_what_the_network_cannot_take():

@@ -6,9 +6,6 @@
   pixel rounding of the crop (the factor applied is the one the integer crop really gives).
   Magnifying crops the centre-ish of the bed (a random window of side S/s, resized to S); shrinking
   resizes to S·s and fills the frame by mirroring the image at its edges (the bed goes on).
-- ``random_crop``: a random window of each image at the same mm per pixel: the particles keep
-  their size in pixels, so the labels stand (the window's own particles are a sample of the same
-  bed; a training view, the whole image is read at inference).
 - ``photometric``: what a camera and its light do to an image but not to the particles — gain,
   contrast, gamma, white balance, colour saturation, a grey image, blur and sensor noise — so a
   model learns sizes, not one renderer's colours.
@@ -111,20 +108,6 @@ def rescale(batch: torch.Tensor, y_mm: torch.Tensor, scale: tuple[float, float],
         out[i], f = rescale_one(batch[i], float(s[i]), gen)
         y[i] = y_mm[i] * f
     return out, y
-
-
-def random_crop(batch: torch.Tensor, size: int, gen: torch.Generator) -> torch.Tensor:
-    """A random `size`×`size` window of each image (any channels, e.g. the size codes with them),
-    drawn per image; the whole batch when `size` is not smaller than the images."""
-    n, h, w = len(batch), batch.shape[-2], batch.shape[-1]
-    if size >= h and size >= w:
-        return batch
-    if size < 8:
-        raise ValueError(f"crop of {size} px: needs at least 8")
-    size = min(size, h, w)
-    r0 = torch.randint(0, h - size + 1, (n,), generator=gen)
-    c0 = torch.randint(0, w - size + 1, (n,), generator=gen)
-    return torch.stack([batch[i, :, int(r0[i]) : int(r0[i]) + size, int(c0[i]) : int(c0[i]) + size] for i in range(n)])
 
 
 def photometric(batch: torch.Tensor, gen: torch.Generator, strength: float = 1.0) -> torch.Tensor:

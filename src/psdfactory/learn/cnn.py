@@ -19,7 +19,7 @@ from torch import nn
 
 from .. import PsdError, __version__
 from ..psd import TARGETS
-from .augment import augment_d4, photometric, random_crop, rescale
+from .augment import augment_d4, photometric, rescale
 from .data import SceneImages, label_definition, normalise, particles_by_scene, split_summary, training_rows
 from .estimator import Estimator, Reading
 from .fit import FitTask, fingerprint, fit, write_history
@@ -77,11 +77,10 @@ class SizeCells:
 
 
 def run_epoch(model, loader, stats, opt, sched, device, precision, aux_weight, gen, params,
-              bar=None, cells: SizeCells | None = None, scaler=None, crop: int = 0) -> float:
-    """One pass over the training images; with `cells` the loader's images carry size codes as a
-    fourth channel (augmented with the image) and the size-histogram loss is added; `scaler`:
-    fp16's loss scaler (`runtime.loss_scaler`); `crop` > 0: a random window of that many px of
-    each image is trained on (`models.crop_size`)."""
+              bar=None, cells: SizeCells | None = None, scaler=None) -> float:
+    """One pass over the training images (or their windows, `windows.SceneWindows`); with `cells`
+    the loader's images carry size codes as a fourth channel (augmented with the image) and the
+    size-histogram loss is added; `scaler`: fp16's loss scaler (`runtime.loss_scaler`)."""
     model.train()
     total, n = 0.0, 0
     for x, y in loader:
@@ -89,8 +88,6 @@ def run_epoch(model, loader, stats, opt, sched, device, precision, aux_weight, g
             x = augment_d4(x, gen)
         if tuple(params.scale_augment) != (1.0, 1.0):
             x, y = rescale(x, y, tuple(params.scale_augment), gen)
-        if crop:
-            x = random_crop(x, crop, gen)
         codes = x[:, 3] if cells is not None else None
         x = x[:, :3]
         if params.photometric > 0:
@@ -150,10 +147,11 @@ class CnnRegressor(Estimator):
         crop = crop_size(params.arch, params.crop, size)
         cells_on = params.size_cells > 0
         loader_gen = torch.Generator().manual_seed(params.seed + 1)
+        window_gen = torch.Generator().manual_seed(params.seed + 2)  # train.crop's windows
         if pack is None:
-            data = folder_data(params, results_root, size, cells_on, loader_gen)
+            data = folder_data(params, results_root, size, cells_on, loader_gen, crop, window_gen)
         else:
-            data = pack_data(params, Path(pack), size, cells_on, loader_workers, ranks)
+            data = pack_data(params, Path(pack), size, cells_on, loader_workers, ranks, crop)
         stats = data.stats
         model, weights_used = build_model(params.arch, stats, params.pretrained, size=size)
         if params.arch == "inception_v3" and not inception_aux_fits(size):
@@ -187,13 +185,14 @@ class CnnRegressor(Estimator):
         scaler = loss_scaler(device, precision)
         task = FitTask(model, opt, sched, lambda bar: run_epoch(net, data.train_loader, stats, opt, sched, device,
                                                                precision, params.aux_loss_weight, gen, params, bar,
-                                                               cells, scaler, crop),
+                                                               cells, scaler),
                        validate, data.n_train, "img", modules={"cell_head": cells.module} if cells else {},
-                       generators={"gen": gen, "loader_gen": loader_gen}, scaler=scaler,
+                       generators={"gen": gen, "loader_gen": loader_gen, "window_gen": window_gen}, scaler=scaler,
                        before_epoch=data.before_epoch)
         n_params = count_parameters(model)
+        windows = f" (trained on random {crop}-px windows, each labelled by its particles)" if crop else ""
         logger.info(f"training {params.arch} ({n_params / 1e6:.1f} M parameters, weights: {weights_used}) on "
-                    f"{data.describe}, input {size} px{f' (trained on random {crop}-px windows)' if crop else ''}, "
+                    f"{data.describe}, input {size} px{windows}, "
                     f"{device} {precision}, up to {params.epochs} epochs")
         meta = {
             "arch": params.arch,
@@ -246,8 +245,11 @@ class TrainingData:
     before_epoch: object = None  # called with the epoch's index before it
 
 
-def folder_data(params, results_root: Path, size: int, cells: bool, loader_gen: torch.Generator) -> TrainingData:
-    """The datasets' train and val scenes from their folders (decoded once, cached in memory)."""
+def folder_data(params, results_root: Path, size: int, cells: bool, loader_gen: torch.Generator, crop: int = 0,
+                window_gen: torch.Generator | None = None) -> TrainingData:
+    """The datasets' train and val scenes from their folders (decoded once, cached in memory);
+    with `crop` > 0 each training image is cut to a random window of that many px (drawn by
+    `window_gen`) labelled by its own particles (`windows.SceneWindows`)."""
     train_rows, val_rows, rows = training_rows(results_root, params.datasets)
     train_ds = SceneImages(results_root, train_rows, size)
     val_ds = SceneImages(results_root, val_rows, size)
@@ -256,6 +258,11 @@ def folder_data(params, results_root: Path, size: int, cells: bool, loader_gen: 
         from .size_cells import ScenesWithSizeCodes
 
         fed = ScenesWithSizeCodes(train_ds, particles_by_scene(results_root, params.datasets))
+    if crop:
+        from .windows import PARTICLE_COLUMNS, SceneWindows
+
+        fed = SceneWindows(fed, train_rows, particles_by_scene(results_root, params.datasets, PARTICLE_COLUMNS), crop,
+                           label_definition(train_rows)["weighting"], window_gen or torch.Generator())
     train = split_summary(train_ds.y.numpy(), np.array([r["mm_per_px"] for r in train_rows]),
                           np.array([r["resolution"] for r in train_rows]))
     loader = torch.utils.data.DataLoader(fed, batch_size=params.batch_size, shuffle=True, generator=loader_gen)
@@ -266,11 +273,14 @@ def folder_data(params, results_root: Path, size: int, cells: bool, loader_gen: 
         f"{len(train_ds)} train / {len(val_ds)} val scenes of {', '.join(params.datasets)}", list(params.datasets))
 
 
-def pack_data(params, pack: Path, size: int, cells: bool, workers: int, ranks) -> TrainingData:
+def pack_data(params, pack: Path, size: int, cells: bool, workers: int, ranks, crop: int = 0) -> TrainingData:
     """A pack's train split, each rank its own shards, and its whole val split on every rank."""
     from ..packs import read_index
     from .shards import ShardScenes, stack_codes
 
+    if crop:
+        raise PsdError(f"train.crop = {crop}: each window is labelled by the particles inside it, and a pack holds "
+                       "no particle positions; train from the scene folders (without --pack), or set train.crop: 0")
     index = read_index(pack)
     if index["size"] != size:
         raise PsdError(f"--pack {pack} holds {index['size']} px images, {params.arch} trains at {size} px: pack "

@@ -39,11 +39,14 @@ def training_rows(results_root: Path, datasets: tuple[str, ...] | list[str]
     return train, val, rows
 
 
-def particles_by_scene(results_root: Path, datasets: tuple[str, ...] | list[str]) -> dict[str, dict[str, np.ndarray]]:
-    """scene_id → {particle_id, size_mm, z_mm} arrays of the particle manifests of `datasets`."""
-    from ..manifest import read_particles
+def particles_by_scene(results_root: Path, datasets: tuple[str, ...] | list[str],
+                       columns: tuple[str, ...] | None = None) -> dict[str, dict[str, np.ndarray]]:
+    """scene_id → {column: array} of the particle manifests of `datasets` (by default
+    manifest.PARTICLE_READ_COLUMNS: particle_id, size_mm, z_mm)."""
+    from ..manifest import PARTICLE_READ_COLUMNS, read_particles
 
-    return {k: v for ds in datasets for k, v in read_particles(results_root, ds).items()}
+    cols = tuple(columns or PARTICLE_READ_COLUMNS)
+    return {k: v for ds in datasets for k, v in read_particles(results_root, ds, cols).items()}
 
 
 def sizes_px_by_id(particles: dict[str, np.ndarray], mm_per_px: float) -> np.ndarray:
