@@ -245,24 +245,28 @@ class TrainingData:
     before_epoch: object = None  # called with the epoch's index before it
 
 
-def folder_data(params, results_root: Path, size: int, cells: bool, loader_gen: torch.Generator, crop: int = 0,
-                window_gen: torch.Generator | None = None) -> TrainingData:
+def folder_data(params, results_root: Path, size: int, cells: bool, loader_gen: torch.Generator, crop: int,
+                window_gen: torch.Generator) -> TrainingData:
     """The datasets' train and val scenes from their folders (decoded once, cached in memory);
     with `crop` > 0 each training image is cut to a random window of that many px (drawn by
     `window_gen`) labelled by its own particles (`windows.SceneWindows`)."""
+    from ..manifest import PARTICLE_READ_COLUMNS
+    from .windows import PARTICLE_COLUMNS, SceneWindows
+
     train_rows, val_rows, rows = training_rows(results_root, params.datasets)
     train_ds = SceneImages(results_root, train_rows, size)
     val_ds = SceneImages(results_root, val_rows, size)
     fed = train_ds
+    particles = None
+    if cells or crop:  # the particle manifest read once, with the columns of both
+        columns = (*PARTICLE_READ_COLUMNS, *(c for c in PARTICLE_COLUMNS if crop and c not in PARTICLE_READ_COLUMNS))
+        particles = particles_by_scene(results_root, params.datasets, columns)
     if cells:
         from .size_cells import ScenesWithSizeCodes
 
-        fed = ScenesWithSizeCodes(train_ds, particles_by_scene(results_root, params.datasets))
+        fed = ScenesWithSizeCodes(train_ds, particles)
     if crop:
-        from .windows import PARTICLE_COLUMNS, SceneWindows
-
-        fed = SceneWindows(fed, train_rows, particles_by_scene(results_root, params.datasets, PARTICLE_COLUMNS), crop,
-                           label_definition(train_rows)["weighting"], window_gen or torch.Generator())
+        fed = SceneWindows(fed, train_rows, particles, crop, label_definition(train_rows)["weighting"], window_gen)
     train = split_summary(train_ds.y.numpy(), np.array([r["mm_per_px"] for r in train_rows]),
                           np.array([r["resolution"] for r in train_rows]))
     loader = torch.utils.data.DataLoader(fed, batch_size=params.batch_size, shuffle=True, generator=loader_gen)
