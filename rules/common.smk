@@ -183,7 +183,7 @@ def render_params(wildcards):
 
 
 def label_params(wildcards):
-    return as_json(psd_config.label_params(config))
+    return as_json(psd_config.label_params(config, wildcards.dataset))
 
 
 def ceiling_params(wildcards):

@@ -610,8 +610,14 @@ def render_params(config: dict, dataset: str | None = None) -> dict:
     return out
 
 
-def label_params(config: dict) -> dict:
-    return copy.deepcopy(config["labels"])
+def label_params(config: dict, dataset: str | None = None) -> dict:
+    """The labels' settings; for a dataset whose camera sees the whole table (render.view_fraction
+    [1, 1]) without `particles`: every particle's centre lies in view, so the particles in view and
+    the bed's are the same, and the label jobs of before the setting are not rerun."""
+    out = copy.deepcopy(config["labels"])
+    if dataset is not None and min(dataset_render(config, dataset)["view_fraction"]) >= 1:
+        out.pop("particles", None)
+    return out
 
 
 def compare_params(config: dict) -> dict:

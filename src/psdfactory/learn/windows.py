@@ -1,7 +1,7 @@
 """Training windows labelled by their own particles (`train.crop`).
 
 A window of a scene image holds a sample of the bed, not the bed: its d10/d50/d90 are those of the
-particles whose centre lies inside it (hidden ones too, as the scene's labels count every particle),
+particles whose centre lies inside it (hidden ones too, as the scene's labels count every particle in view),
 in the labels' size definition and weighting. A window labelled with the whole scene's d-values
 teaches a CNN a label its pixels do not hold — a 128-px window of a 256-px image often misses the
 few largest particles that set d90 (docs/experiments.md, "windows"). The particle table gives every

@@ -30,10 +30,19 @@ class LabelParams:
     psd_bins: int  # points of the cumulative curves, log-spaced over the size bounds
     size_definition: str  # what d*_mm are percentiles of (one of psd.SIZE_DEFINITIONS)
     weighting: str  # what d*_mm count: "number" (particles) or "volume"
+    particles: str  # which particles they count: "in_view" (centre in the image) or "bed" (all)
 
     @classmethod
     def from_dict(cls, d: dict) -> LabelParams:
-        return cls(**config_fields(cls, d, "labels"))
+        # without `particles` (config.label_params: the camera sees the whole table) every particle is in view
+        return cls(**config_fields(cls, {"particles": "bed", **d}, "labels"))
+
+
+def in_view(x_mm: np.ndarray, y_mm: np.ndarray, view_mm: float) -> np.ndarray:
+    """Which particle centres lie in the camera's square view of `view_mm` mm a side, centred on
+    the table (render.json's view_mm and image_origin)."""
+    half = float(view_mm) / 2
+    return (np.abs(np.asarray(x_mm, float)) < half) & (np.abs(np.asarray(y_mm, float)) < half)
 
 
 def visible_pixels(mask: np.ndarray, n_particles: int) -> np.ndarray:
@@ -45,9 +54,18 @@ def visible_pixels(mask: np.ndarray, n_particles: int) -> np.ndarray:
 
 def scene_labels(
     sizes_by_definition: dict[str, np.ndarray], volumes: np.ndarray, visible_px: np.ndarray, image_px: int,
-    bounds: tuple[float, float], p: LabelParams,
+    bounds: tuple[float, float], p: LabelParams, counted: np.ndarray | None = None,
 ) -> dict:
-    """A scene's labels from its particles' sizes under every definition (name → array)."""
+    """A scene's labels from its particles' sizes under every definition (name → array), of the
+    particles `counted` (a boolean mask; None: all of them). The visible particles and the
+    covered fraction are the image's, whatever the labels count."""
+    n_bed = len(volumes)
+    if counted is not None:
+        if not counted.any():
+            raise PsdError(f"none of the scene's {n_bed} particles has its centre in the camera's view: no labels "
+                           "of the particles in view (labels.particles: bed counts the whole bed)")
+        sizes_by_definition = {k: np.asarray(v)[counted] for k, v in sizes_by_definition.items()}
+        volumes = np.asarray(volumes)[counted]
     per_definition = {}
     for name in SIZE_DEFINITIONS:
         for weighting, w in (("number", None), ("volume", volumes)):
@@ -59,7 +77,9 @@ def scene_labels(
     lo, hi = max(bounds[0], 1e-3), bounds[1]
     grid = np.geomspace(lo, hi, p.psd_bins)
     return {
-        "n_particles": int(len(sizes)),
+        "n_particles": int(len(sizes)),  # those the labels count
+        "n_in_bed": int(n_bed),
+        "particles_counted": p.particles,
         "n_visible": int((visible_px >= p.visible_min_px).sum()),
         "covered_fraction": float(visible_px.sum() / image_px),  # image pixels showing a particle
         "size_definition": p.size_definition,

@@ -173,7 +173,7 @@ def run_label(params: dict, scene_dir: Path) -> dict:
     import pyarrow as pa
 
     from ..psd import SIZE_DEFINITIONS, size_column
-    from .labels import LabelParams, scene_labels, visible_pixels
+    from .labels import LabelParams, in_view, scene_labels, visible_pixels
     from .sizes import equivalent_sphere_diameter, footprints
 
     spec = read_json(scene_dir / "spec.json")
@@ -195,7 +195,14 @@ def run_label(params: dict, scene_dir: Path) -> dict:
                      *((geometry.faces, geometry.face_offsets) if spec["shape_type"] != "mesh" else ())),
     }
     by_definition = {d: by_column[size_column(d)] for d in SIZE_DEFINITIONS}
-    labels = scene_labels(by_definition, geometry.volume_mm3, vis, mask.size, tuple(spec["size_bounds"]), lp)
+    # the particles the labels count: those whose centre the camera sees, or the whole bed
+    view_mm = float(rend.get("view_mm", rend["mm_per_px"] * rend["resolution"]))
+    counted = in_view(pos[:, 0], pos[:, 1], view_mm) if lp.particles == "in_view" else None
+    try:
+        labels = scene_labels(by_definition, geometry.volume_mm3, vis, mask.size, tuple(spec["size_bounds"]), lp,
+                              counted)
+    except PsdError as e:
+        raise PsdError(f"{spec['scene_id']}: {e}") from None
     record = {
         "scene_id": spec["scene_id"],
         "dataset": spec["dataset"],
@@ -231,7 +238,8 @@ def run_label(params: dict, scene_dir: Path) -> dict:
     write_json(scene_dir / "labels.json", record)
     logger.info(f"labelled {spec['scene_id']}: {lp.size_definition} d10/d50/d90 = {record['d10_mm']:.2f}/"
         f"{record['d50_mm']:.2f}/{record['d90_mm']:.2f} mm ({lp.weighting}), {record['d10_v_mm']:.2f}/"
-        f"{record['d50_v_mm']:.2f}/{record['d90_v_mm']:.2f} mm (volume); {record['n_visible']}/{n} visible")
+        f"{record['d50_v_mm']:.2f}/{record['d90_v_mm']:.2f} mm (volume) of {record['n_particles']} particles "
+        f"({lp.particles}); {record['n_visible']}/{n} visible")
     return record
 
 
