@@ -8,8 +8,10 @@ where only the maps' arithmetic matters."""
 from __future__ import annotations
 
 import csv
+import json
 import logging
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -316,6 +318,42 @@ def test_resume_predicts_again_when_the_particle_table_is_of_an_older_version(sy
         assert main([*args, "--resume"]) == 0
     assert len(synthetic_model) == 4 and "every image is predicted again" in caplog.text
     assert read_csv(grains) == rows
+
+
+def test_resume_keeps_no_row_read_at_another_scale_or_by_another_model(synthetic_model, tmp_path, caplog):
+    """A --resume after the photos' scale, the model file or the automatic scale changed predicts
+    every image again (the rows do not say how they were read; `.<out>.reading.json` does), and
+    keeps the rows of the same reading."""
+    from psdfactory.cli import main
+    from psdfactory.deploy.predict import reading_path
+
+    for i in range(2):
+        Image.fromarray(grain_bed(256, 256, 30, seed=i)[0]).save(tmp_path / f"bed{i}.png")
+    out = tmp_path / "psd.csv"
+    (tmp_path / "m.pt").write_bytes(b"a model")  # the fixture loads no file: this one is only looked at
+    images = [str(tmp_path / "bed0.png"), str(tmp_path / "bed1.png")]
+
+    def run(*extra: str) -> int:
+        before = len(synthetic_model)
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="psdfactory"):
+            assert main(["predict", "--model", str(tmp_path / "m.pt"), "--out", str(out), *extra, *images]) == 0
+        return len(synthetic_model) - before  # the network's calls: none where every row is kept
+
+    assert run("--mm-per-px", "0.5") > 0
+    stamp = json.loads(reading_path(out).read_text())
+    assert stamp["mm_per_px"] == 0.5 and stamp["model"] == str(tmp_path / "m.pt")
+    assert run("--mm-per-px", "0.5", "--resume") == 0  # the same reading: kept
+    assert run("--mm-per-px", "0.4", "--resume") > 0  # another scale
+    assert "mm_per_px 0.5 → 0.4" in caplog.text and "every image is predicted again" in caplog.text
+    assert run("--mm-per-px", "0.4", "--no-auto-scale", "--resume") == 0  # the fixture's model has no auto scale
+    assert run("--mm-per-px", "0.4", "--auto-scale", "--resume") > 0
+    assert "auto_scale False → True" in caplog.text
+    os.utime(tmp_path / "m.pt", ns=(1, 1))  # the model file replaced (trained again in place)
+    assert run("--mm-per-px", "0.4", "--auto-scale", "--resume") > 0 and "model_mtime_ns" in caplog.text
+    reading_path(out).unlink()  # an older psdfactory's rows: how they were read is unknown
+    assert run("--mm-per-px", "0.4", "--auto-scale", "--resume") > 0 and "missing or unreadable" in caplog.text
+    assert len(read_csv(out)) == 2
 
 
 def test_readings_the_model_cannot_give_are_refused_in_one_line(synthetic_model, tmp_path, capsys):

@@ -658,6 +658,41 @@ def done_rows(out: Path) -> dict[str, dict]:
     return {image_key(r["image"]): r for r in rows if not r["error"]}
 
 
+def reading_path(out: Path) -> Path:
+    """Where a run with --out records how it read the images (`read_settings`): a --resume keeps
+    the rows of a run that read them the same way only."""
+    return out.with_name(f".{out.name}.reading.json")
+
+
+def read_settings(model_path: Path, est: Estimator, mm_per_px: float | None, tile: int | None,
+                  runtime: str) -> dict:
+    """What a row's d-values depend on beyond the image and its size definition and weighting
+    (those are in the row): the model file (path, size and modification time: a model trained
+    again in place is another), the photos' scale, the automatic scale as it applies, the tile
+    and the runtime."""
+    try:
+        st = os.stat(model_path)
+        size, mtime = st.st_size, st.st_mtime_ns
+    except OSError:  # gone since it was loaded: known by its path alone
+        size = mtime = None
+    return {"model": os.path.abspath(model_path), "model_bytes": size, "model_mtime_ns": mtime,
+            "mm_per_px": mm_per_px, "auto_scale": bool(est.auto_scale and est.finds_grains and mm_per_px is not None),
+            "tile": tile, "runtime": runtime}
+
+
+def resumable(out: Path, settings: dict) -> str | None:
+    """Why the rows already in --out (or its partial file) cannot be kept for a run that reads with
+    `settings`; None when they can."""
+    try:
+        before = json.loads(reading_path(out).read_text())
+    except (OSError, ValueError):
+        return f"{reading_path(out).name} is missing or unreadable, so how they were read is unknown"
+    if not isinstance(before, dict):
+        return f"{reading_path(out).name} is not a record of a run"
+    changed = [f"{k} {before.get(k)!r} → {v!r}" for k, v in settings.items() if before.get(k) != v]
+    return f"they were read otherwise ({'; '.join(changed)})" if changed else None
+
+
 def lock_path(out: Path) -> Path:
     return out.with_name(f".{out.name}.lock")
 
@@ -792,6 +827,12 @@ def _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_s
                                    runtime, auto_scale)
     done = done_rows(out) if (resume and out is not None) else {}
     done = {k: r for k, r in done.items() if all(r.get(c) == what[c] for c in what)}  # rows of another reading: again
+    if out is not None:
+        settings = read_settings(Path(model_path), est, mm_per_px, tile, runtime)
+        if done and (why := resumable(Path(out), settings)) is not None:
+            logger.warning(f"--resume: the rows already in {out} are not kept: {why}; every image is predicted again")
+            done = {}
+        write_json(reading_path(Path(out)), settings)
     particles = outputs.get("particles_out")
     if done and particles is not None and not particle_table_current(Path(particles)):
         logger.info(f"--resume: {particles} is missing or has other columns (an older psdfactory's): every image is "
