@@ -29,8 +29,9 @@ rewritten after every run (marked partial until the last), so a run cut short st
 whole spread of the models it got through; a row's `seeds` column says how many runs it holds
 (one run is shown without a spread).
 
-A run whose model.pt and metrics.json exist (with the same params) is not redone, so a killed run
-resumes where it stopped (training itself resumes from its checkpoints/last.pt). Progress lines,
+A run whose model.pt and metrics.json exist (with the same params, trained and scored on the same
+scenes and labels: data.json beside params.json) is not redone, so a killed run resumes where it
+stopped (training itself resumes from its checkpoints/last.pt). Progress lines,
 each with the elapsed time and an ETA, go to stdout; each command's own log goes to the run's
 train.log / eval/evaluate.log, Snakemake's to <out>/snakemake.log.
 
@@ -137,6 +138,21 @@ class Progress:
 def psdfactory_cmd() -> list[str]:
     exe = Path(sys.executable).with_name("psdfactory")
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "psdfactory.cli"]
+
+
+def data_identity(results: Path, datasets: list[str]) -> str:
+    """A hash of the scenes `datasets` hold (ids, splits and labels): a run trained or scored on
+    other data — relabelled scenes, another split — is redone, not kept."""
+    import hashlib
+
+    from psdfactory.manifest import read_scenes
+    from psdfactory.psd import TARGETS
+
+    rows = []
+    for ds in sorted(set(datasets)):
+        t = read_scenes(results, ds).select(["scene_id", "split", *TARGETS]).to_pylist()
+        rows += sorted((ds, r["scene_id"], r["split"], *(repr(r[k]) for k in TARGETS)) for r in t)
+    return hashlib.sha256(json.dumps(rows).encode()).hexdigest()[:16]
 
 
 def make_datasets(config_path: Path, jobs: int, log: Path) -> None:
@@ -430,11 +446,14 @@ def main() -> None:
             params = psd_config.train_params(cfg, arch)
             params["seed"] = seed
             pjson = json.dumps(params, sort_keys=True, separators=(",", ":"))
-            stamp = run / "params.json"
-            # the same recipe: equal but for settings that change the model's meta only (config.training_recipe)
+            stamp, data_stamp = run / "params.json", run / "data.json"
+            data = data_identity(results, [*params["datasets"], *datasets])
+            # the same recipe (equal but for settings that change the model's meta only: config.training_recipe) on
+            # the same scenes and labels; a run without the record of its data (of before it) is not known to be
             try:
                 same = stamp.is_file() and (psd_config.training_recipe(json.loads(stamp.read_text(encoding="utf-8")))
                                             == psd_config.training_recipe(params))
+                same = same and data_stamp.is_file() and json.loads(data_stamp.read_text(encoding="utf-8")) == data
             except (TypeError, ValueError):  # a stamp cut short (JSONDecodeError) or edited: not this recipe's
                 same = False
             if a.summarise_only:
@@ -450,6 +469,7 @@ def main() -> None:
                     shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
                 shutil.rmtree(run / "checkpoints", ignore_errors=True)
             stamp.write_text(pjson, encoding="utf-8")
+            data_stamp.write_text(json.dumps(data), encoding="utf-8")
             label = f"seed {seed} {ARCH_LABELS.get(arch, arch)}"
             info = run / "run.json"
             timing = json.loads(info.read_text(encoding="utf-8")) if info.is_file() else {}

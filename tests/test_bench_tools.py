@@ -65,6 +65,29 @@ def test_set_changes_the_recipe_only_and_write_config_gives_a_config_without_sna
     assert r.returncode != 0 and "epochs" in r.stderr and not (tmp_path / "bad.json").exists()
 
 
+def test_seed_spread_knows_a_run_of_other_scenes_or_labels(tmp_path):
+    """seed_spread.py keeps a finished run only if it was trained and scored on the same scenes and
+    labels (data.json): relabelled scenes (e.g. after labels.particles changed) or another split
+    give another identity, so the run is redone."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    seed_spread = bench_module("seed_spread")
+    shards = tmp_path / "a" / "manifest" / "scenes"
+    shards.mkdir(parents=True)
+    rows = {"scene_id": ["a-0", "a-1"], "split": ["train", "val"], "d10_mm": [1.0, 2.0], "d50_mm": [3.0, 4.0],
+            "d90_mm": [5.0, 6.0], "n_particles": [10, 12]}
+    pq.write_table(pa.table(rows), shards / "shard-00000.parquet")
+    first = seed_spread.data_identity(tmp_path, ["a", "a"])
+    assert first == seed_spread.data_identity(tmp_path, ["a"])
+    pq.write_table(pa.table({**rows, "n_particles": [11, 13]}), shards / "shard-00000.parquet")
+    assert seed_spread.data_identity(tmp_path, ["a"]) == first  # what the runs do not read: the same data
+    pq.write_table(pa.table({**rows, "d50_mm": [3.0, 4.1]}), shards / "shard-00000.parquet")
+    assert seed_spread.data_identity(tmp_path, ["a"]) != first  # relabelled
+    pq.write_table(pa.table({**rows, "split": ["train", "test"]}), shards / "shard-00000.parquet")
+    assert seed_spread.data_identity(tmp_path, ["a"]) != first  # another split
+
+
 @pytest.mark.parametrize("seconds", ["7m", "0", "00", "", "-5"])
 def test_gpu_seed_spread_refuses_a_time_limit_that_is_not_whole_seconds(tmp_path, seconds):
     """bench/gpu_seed_spread.sh checks SECONDS itself (timeout would fail every run later, each with its own error)."""
