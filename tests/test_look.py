@@ -187,7 +187,11 @@ def test_gravel_config_is_valid():
     assert cfg["datasets"]["gravel_cycles"]["render"]["backend"] == "cycles"
     sparse = cfg["datasets"]["gravel_sparse"]  # the same pebbles, fewer: the sand shows between them
     assert sparse["shape"] == ds["shape"] and sparse["size"] == ds["size"] and max(sparse["count"]) < min(ds["count"])
-    assert cfg["train"]["instances"]["datasets"] == ["gravel", "gravel_sparse"]
+    both = cfg["datasets"]["gravel_cycles_train"]  # the beds' train/val scenes by Cycles: the finder learns both
+    assert both["rerender_of"] == {"dataset": "gravel", "split": ["train", "val"]}
+    assert both["render"]["backend"] == "cycles"
+    assert cfg["train"]["instances"]["datasets"] == ["gravel", "gravel_sparse", "gravel_cycles_train"]
+    assert psd_config.train_params(cfg, "instances")["settings"]["auto_scale"] is True
 
 
 @pytest.mark.slow
