@@ -440,6 +440,7 @@ def main() -> None:
     left_out = 0  # --summarise-only: runs not finished
     train_minutes: dict = {}
     for arch in archs:
+        data = data_identity(results, [*psd_config.train_params(cfg, arch)["datasets"], *datasets])  # every seed's
         for seed in seeds:
             run = results / "seed_spread" / str(seed) / arch
             run.mkdir(parents=True, exist_ok=True)
@@ -447,7 +448,6 @@ def main() -> None:
             params["seed"] = seed
             pjson = json.dumps(params, sort_keys=True, separators=(",", ":"))
             stamp, data_stamp = run / "params.json", run / "data.json"
-            data = data_identity(results, [*params["datasets"], *datasets])
             # the same recipe (equal but for settings that change the model's meta only: config.training_recipe) on
             # the same scenes and labels; a run without the record of its data (of before it) is not known to be
             try:

@@ -195,14 +195,10 @@ def run_label(params: dict, scene_dir: Path) -> dict:
                      *((geometry.faces, geometry.face_offsets) if spec["shape_type"] != "mesh" else ())),
     }
     by_definition = {d: by_column[size_column(d)] for d in SIZE_DEFINITIONS}
-    # the particles the labels count: those whose centre the camera sees, or the whole bed
-    view_mm = float(rend.get("view_mm", rend["mm_per_px"] * rend["resolution"]))
+    # the particles the labels count: those whose centre the camera sees (a view of mm_per_px * resolution), or all
+    view_mm = float(rend["mm_per_px"]) * int(rend["resolution"])
     counted = in_view(pos[:, 0], pos[:, 1], view_mm) if lp.particles == "in_view" else None
-    try:
-        labels = scene_labels(by_definition, geometry.volume_mm3, vis, mask.size, tuple(spec["size_bounds"]), lp,
-                              counted)
-    except PsdError as e:
-        raise PsdError(f"{spec['scene_id']}: {e}") from None
+    labels = scene_labels(by_definition, geometry.volume_mm3, vis, mask.size, tuple(spec["size_bounds"]), lp, counted)
     record = {
         "scene_id": spec["scene_id"],
         "dataset": spec["dataset"],
