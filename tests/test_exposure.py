@@ -140,3 +140,28 @@ def test_a_model_taught_the_lit_tops_records_it_and_is_scored_against_them_too(t
     assert lit_seg["gap_sky_view"] == 0.8 and lit_seg["n_pred"] == seg["n_pred"]
     assert 0 < lit_seg["n_true"] <= seg["n_true"] and 0 <= lit_seg["n_matched"] <= lit_seg["n_pred"]
     assert len(dirs) == 2
+
+
+def test_sky_occlusion_darkens_what_sees_little_sky_and_is_out_of_the_default_slice(tmp_path):
+    from psdfactory import config as psd_config
+    from psdfactory.io import read_png
+    from psdfactory.scene.stages import run_render
+
+    (scene,) = split_dataset(tmp_path, ["train"], resolution=48)
+    cfg = tiny_config(count=[15, 25])
+    cfg["render"]["resolution"] = 48
+    assert "occlusion" not in psd_config.render_params(cfg)  # the default renders' params are as before
+    before = read_png(scene / "image.png").astype(float)
+    cfg["render"].update(occlusion="sky", occlusion_strength=[0.9, 0.9], jpeg_fraction=0.0)
+    params = psd_config.render_params(cfg)
+    assert params["occlusion"] == "sky"
+    run_render(params, scene)
+    after = read_png(scene / "image.png").astype(float).mean(axis=2)
+    cfg["render"].update(occlusion="crevice")
+    run_render(psd_config.render_params(cfg), scene)
+    crevice = read_png(scene / "image.png").astype(float).mean(axis=2)
+    view = scene_sky_view(scene)
+    low, high = view < np.quantile(view, 0.2), view >= np.quantile(view, 0.8)
+    # darker where the sky is hidden, relative to where it is open
+    assert (after[low].mean() / after[high].mean()) < (crevice[low].mean() / crevice[high].mean())
+    assert before.shape[:2] == after.shape

@@ -38,6 +38,7 @@ class RenderParams:
     ambient: Range
     shadow_strength: Range
     occlusion_strength: Range
+    occlusion: str  # crevice | sky: what the tiny backend darkens by occlusion_strength (tiny.shade_tiny)
     # materials
     palette: tuple[tuple[float, float, float], ...]
     particle_brightness: Range
@@ -70,7 +71,8 @@ class RenderParams:
 
     @classmethod
     def from_dict(cls, d: dict) -> RenderParams:
-        kw = config_fields(cls, {"cycles": None, "distractors": None, "markings": None, **d}, "render")
+        kw = config_fields(cls, {"cycles": None, "distractors": None, "markings": None, "occlusion": "crevice", **d},
+                           "render")
         for k, v in kw.items():
             if k == "distractors":
                 kw[k] = None if v is None else DistractorParams.from_dict(v)

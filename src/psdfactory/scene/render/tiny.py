@@ -17,6 +17,7 @@ import math
 import numpy as np
 from scipy import ndimage
 
+from ..exposure import gap_radius_mm, sky_view
 from ..geometry import CM, Geometry, gc_paused, global_faces, mesh_normals
 from .look import Look, RenderParams, mm_per_px
 from .raster import SPECULAR_COEFF, camera_matrices, raster_raw
@@ -195,7 +196,7 @@ def render_tiny(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.nd
     """The fast backend → (rgb float32 HxWx3 in [0,1] before the sensor, uint16 mask, extra metadata)."""
     rgb, ids, height = tiny_raw(spec, geometry, pos_mm, quats, p, look)
     px_mm = mm_per_px(float(spec["table_size"]), p.resolution, look.view_fraction)
-    rgb = shade_tiny(rgb, ids, height, look, p, px_mm, rng)
+    rgb = shade_tiny(rgb, ids, height, look, p, px_mm, rng, gap_radius_mm(geometry.dims_mm) if len(geometry) else 1.0)
     s = p.supersample
     mask = ids[s // 2 :: s, s // 2 :: s].astype(np.uint16)  # each block's centre sample: exact ids
     return rgb, mask, {"supersample": s}
@@ -214,8 +215,9 @@ def downsample(a: np.ndarray, s: int) -> np.ndarray:
 
 
 def shade_tiny(rgb: np.ndarray, ids: np.ndarray, height: np.ndarray, look: Look, p: RenderParams, px_mm: float,
-               rng: np.random.Generator) -> np.ndarray:
-    """Texture, anti-aliasing, cast shadows and contact occlusion for the TinyRenderer image."""
+               rng: np.random.Generator, radius_mm: float = 1.0) -> np.ndarray:
+    """Texture, anti-aliasing, cast shadows and occlusion for the TinyRenderer image; with
+    `p.occlusion` 'sky', the sky a pixel does not see within `radius_mm` darkens it."""
     s = p.supersample
     # surface texture: the table's grain on table pixels, each particle's mottling on its own
     layers = white_layers(rng, ids.shape)
@@ -229,6 +231,9 @@ def shade_tiny(rgb: np.ndarray, ids: np.ndarray, height: np.ndarray, look: Look,
     # cast shadows and contact / crevice occlusion from the height map
     shadow = shade_from_height(hgt, px_mm, look.light_dir, float(hgt.max()))
     shadow = ndimage.gaussian_filter(shadow, 0.8)
-    occl = np.clip((ndimage.gaussian_filter(hgt, 2.5 / px_mm) - hgt) / 3.0, 0, 1)
+    if p.occlusion == "sky":
+        occl = 1 - sky_view(hgt, px_mm, radius_mm)
+    else:
+        occl = np.clip((ndimage.gaussian_filter(hgt, 2.5 / px_mm) - hgt) / 3.0, 0, 1)
     light = (1 - look.shadow_strength * shadow) * (1 - look.occlusion_strength * occl)
     return rgb * light[..., None]
