@@ -155,6 +155,9 @@ def test_sky_occlusion_darkens_what_sees_little_sky_and_is_out_of_the_default_sl
     cfg["render"].update(occlusion="sky", occlusion_strength=[0.9, 0.9], jpeg_fraction=0.0)
     params = psd_config.render_params(cfg)
     assert params["occlusion"] == "sky"
+    cfg["render"]["backend"] = "cycles"  # Cycles traces the light: the setting is not in its slice
+    assert "occlusion" not in psd_config.render_params(cfg)
+    cfg["render"]["backend"] = "tiny"
     run_render(params, scene)
     after = read_png(scene / "image.png").astype(float).mean(axis=2)
     cfg["render"].update(occlusion="crevice")

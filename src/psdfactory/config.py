@@ -607,8 +607,8 @@ def render_params(config: dict, dataset: str | None = None) -> dict:
     for sub in SHARE_DRAWS:  # off (probability 0): their settings rerun nothing
         if not out.get(sub, {}).get("probability", 0):
             out.pop(sub, None)
-    if out.get("occlusion") == "crevice":  # the default: in the slice only when other, so nothing of before reruns
-        del out["occlusion"]
+    if out.get("occlusion") == "crevice" or out["backend"] == "cycles":  # in the slice only where the tiny backend
+        out.pop("occlusion", None)  # renders and it is not the default: no render of before reruns
     return out
 
 
