@@ -623,8 +623,12 @@ def label_params(config: dict, dataset: str | None = None) -> dict:
 
 
 def compare_params(config: dict) -> dict:
-    """The render settings, Cycles' included, for rendering scenes with both backends."""
-    return copy.deepcopy(config["render"])
+    """The render settings, Cycles' included, for rendering scenes with both backends (render.occlusion
+    only where it is not the default, as in render_params: the comparisons of before it do not rerun)."""
+    out = copy.deepcopy(config["render"])
+    if out.get("occlusion") == "crevice":
+        del out["occlusion"]
+    return out
 
 
 def ceiling_reference(config: dict, dataset: str) -> dict | None:

@@ -86,12 +86,13 @@ def scene_surface(scene_dir: Path) -> tuple[np.ndarray, float, float]:
     look = rend.get("look") or {}
     missing = [k for k in ("view_fraction", "ground_level_mm", "light_dir") if k not in look]
     if missing or "camera_height_mm" not in rend:
-        raise PsdError(f"{scene_dir / 'render.json'} lacks the camera ({', '.join(missing) or 'camera_height_mm'}); "
-                       "rerun render")
+        raise PsdError(f"{scene_dir / 'render.json'} lacks the camera ({', '.join(missing) or 'camera_height_mm'}): "
+                       "it was not written by this version's render stage; delete the scene's render outputs (or run "
+                       "snakemake --forcerun render_batch) to render it again")
     geometry = load_geometry(scene_dir)
     pos, quat, _ = load_poses(scene_dir)
     res = int(rend["resolution"])
-    s = 2  # supersampled as the tiny backend renders, each pixel the mean of its block
+    s = int(rend.get("supersample", 2))  # as the tiny backend renders it, each pixel the mean of its block
     p = SimpleNamespace(resolution=res, supersample=s, camera_height_mm=float(rend["camera_height_mm"]))
     shading = dict(light_rgb=[1.0, 1.0, 1.0], ambient=1.0, light_intensity=1.0, table_rgb=[0.5, 0.5, 0.5],
                    particle_rgb=np.full((len(geometry), 3), 0.5))

@@ -183,7 +183,7 @@ def training_mask(results_root: Path, row: dict, gap_sky_view: float = 0.0) -> n
     the pebbles on top, `scene.exposure`) made background."""
     path = Path(results_root) / row["mask_path"]
     mask = read_png(path)
-    if gap_sky_view > 0:
+    if gap_sky_view > 0 and mask.any():  # (a scene without a visible particle has no gaps either)
         view = scene_sky_view(path.parent)
         mask = lit_mask(mask, view, gap_sky_view)
     return mask

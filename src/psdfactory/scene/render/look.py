@@ -22,6 +22,8 @@ from .cycles import CyclesParams, Range
 from .distractors import DistractorParams
 from .markings import MarkingParams
 
+OCCLUSIONS = ("crevice", "sky")  # what the tiny backend darkens (tiny.shade_tiny)
+
 
 @dataclass(frozen=True)
 class RenderParams:
@@ -83,6 +85,8 @@ class RenderParams:
                     kw[k] = CyclesParams.from_dict(v)
                 elif kw["backend"] == "cycles":
                     raise PsdError("render.backend 'cycles' needs the render.cycles settings in the slice")
+            elif k == "occlusion" and v not in OCCLUSIONS:
+                raise PsdError(f"render.occlusion must be one of {', '.join(OCCLUSIONS)}, got {v!r}")
             elif k in ("palette", "table_palette"):
                 kw[k] = tuple(tuple(map(float, c)) for c in v)
             elif isinstance(v, list):
