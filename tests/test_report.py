@@ -489,12 +489,3 @@ def test_a_bar_inside_a_markdown_cell_is_escaped_not_a_column():
     md = _md_table(["photo", "error"], [["all 2", "mean |error| 60 %"]]).splitlines()
     assert md[2] == "| all 2 | mean \\|error\\| 60 % |"
     assert all(line.replace("\\|", "").count("|") == 3 for line in md)  # two columns on every line
-
-
-def test_a_model_taught_the_lit_tops_shows_its_f1_against_them():
-    from psdfactory.report import _segmentation_cells
-
-    d = _instances_extra(_per((0.4, 0.7, 0.8)))
-    assert _segmentation_cells(d)[2] == "0.850"
-    d["segmentation_lit"] = {"iou": 0.5, "gap_sky_view": 0.5, "precision": 0.95, "recall": 0.9, "f1": 0.924}
-    assert _segmentation_cells(d)[2] == "0.850 (lit tops: 0.924)"

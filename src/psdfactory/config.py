@@ -729,8 +729,7 @@ def train_params(config: dict, arch: str) -> dict:
         datasets = out["settings"].pop("datasets", None)
         if datasets is not None:  # its own training data (train.<arch>.datasets) overrides train.datasets
             out["datasets"] = list(datasets)
-        for key, off in (("auto_scale", False), ("gap_sky_view", 0)):  # in the slice only when on, as train.crop:
-            if key in out["settings"] and out["settings"][key] == off:  # the slices of before them stay as they
-                del out["settings"][key]  # were, and nothing retrains
+        if out["settings"].get("auto_scale") is False:  # in the slice only when on, as train.crop: the slices
+            del out["settings"]["auto_scale"]  # of before it stay as they were, and nothing retrains
     return out
 

@@ -548,8 +548,7 @@ INSTANCE_NOTE = ("The instance estimator segments every particle (a ResNet-18-tr
                  "particles not touching the edge, with the model's sieve method; 'fully visible' also excludes any "
                  "particle bordering a higher one (it may be partly hidden), per method: min Feret diameter and "
                  "ellipse minor axis of the footprint, and the size map (the network's estimate of the whole "
-                 "particle, median over the instance). A model taught the particles' lit tops "
-                 "(train.instances.gap_sky_view) also gives its F1 against those: the masks it learnt.")
+                 "particle, median over the instance).")
 
 
 PHOTOS_NOTE = ("Each photo is read at its own mm per pixel and resized to the model's scale, as predict does. "
@@ -712,9 +711,7 @@ def _segmentation_cells(d: dict) -> list[str]:
     """Precision, recall, F1 and the matched grains' median and p90 size error."""
     seg, se = d["segmentation"], d["size_error"]
     matched = se["matched"][se["method"]]
-    lit = d.get("segmentation_lit")  # a model taught the particles' lit tops (train.instances.gap_sky_view)
-    f1 = _fmt(seg["f1"], 3) + (f" (lit tops: {_fmt(lit['f1'], 3)})" if lit else "")
-    return [_fmt(seg["precision"], 3), _fmt(seg["recall"], 3), f1,
+    return [_fmt(seg["precision"], 3), _fmt(seg["recall"], 3), _fmt(seg["f1"], 3),
             MISSING if not matched["n"] else f"{100 * matched['median']:.1f} %",
             MISSING if not matched["n"] else f"{100 * matched['p90']:.1f} %"]
 

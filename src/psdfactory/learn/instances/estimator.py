@@ -222,9 +222,6 @@ class SegmentationScorer(DatasetScorer):
         self.raw: list[np.ndarray] = []
         self.y: list[list[float]] = []
         self.sizes = {k: {"est": {m: [] for m in SIEVE_METHODS}, "true": []} for k in self.KINDS}
-        # a model that learnt the particles' lit tops (train.instances.gap_sky_view) is also scored against those
-        self.gap_sky_view = float(est.meta.get("gap_sky_view") or 0.0)
-        self.lit = [0, 0, 0]  # matched, predicted, true
 
     def add(self, row: dict, reading: Reading) -> dict:
         from ...io import read_png
@@ -238,12 +235,6 @@ class SegmentationScorer(DatasetScorer):
             self.n_true + match.n_true
         self.ious += match.iou.tolist()
         self.f1s.append(match.f1)
-        if self.gap_sky_view > 0:
-            from .targets import training_mask
-
-            lit = resize_mask(training_mask(self.root, row, self.gap_sky_view).astype(np.int64), res.mask.shape)
-            ml = match_instances(res.mask, lit)
-            self.lit = [a + b for a, b in zip(self.lit, (ml.n_matched, ml.n_pred, ml.n_true), strict=True)]
         self.raw.append(res.raw)
         self.y.append([float(row[t]) for t in TARGETS])
         p = self.particles.get(row["scene_id"])
@@ -286,21 +277,12 @@ class SegmentationScorer(DatasetScorer):
         size = {"relative_to": "true sieve size", "method": self.est.method,
                 **{key: {meth: size_errors(v["est"][meth], v["true"]) for meth in SIEVE_METHODS}
                    for key, v in self.sizes.items()}}
-        out = {"raw": raw, "segmentation": seg, "size_error": size}
-        if self.gap_sky_view > 0:
-            tp, n_pred, n_true = self.lit
-            out["segmentation_lit"] = {
-                "iou": 0.5, "gap_sky_view": self.gap_sky_view, "precision": tp / n_pred if n_pred else nan,
-                "recall": tp / n_true if n_true else nan, "f1": f1_score(tp, n_pred, n_true),
-                "n_pred": n_pred, "n_true": n_true, "n_matched": tp}
-        return out
+        return {"raw": raw, "segmentation": seg, "size_error": size}
 
     def summary(self, metrics: dict) -> str:
         se, seg = metrics["size_error"]["matched"][self.est.method], metrics["segmentation"]
         return (", raw " + " / ".join(f"{metrics['raw'][n]['r2']:.3f}" for n in NAMES)
-                + f"; P/R/F1 {seg['precision']:.3f}/{seg['recall']:.3f}/{seg['f1']:.3f}"
-                + (f" (F1 {metrics['segmentation_lit']['f1']:.3f} against the lit tops it learnt)"
-                   if "segmentation_lit" in metrics else "") + "; size error of matched "
+                + f"; P/R/F1 {seg['precision']:.3f}/{seg['recall']:.3f}/{seg['f1']:.3f}; size error of matched "
                 + "particles " + (f"median {100 * se['median']:.1f} %, p90 {100 * se['p90']:.1f} %" if se["n"]
                                   else "(none matched)"))
 

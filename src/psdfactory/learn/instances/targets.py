@@ -12,7 +12,6 @@ from torch.nn import functional as F
 
 from ... import PsdError
 from ...io import read_png
-from ...scene.exposure import lit_mask, scene_sky_view
 from ..augment import view
 from ..data import sizes_px_by_id
 from .draw import instance_outlines
@@ -177,27 +176,14 @@ def zoom(image: torch.Tensor, target: torch.Tensor, size: int) -> tuple[torch.Te
 # data
 
 
-def training_mask(results_root: Path, row: dict, gap_sky_view: float = 0.0) -> np.ndarray:
-    """The instance mask the estimator learns for a manifest row: the scene's mask.png, and with
-    `gap_sky_view` > 0 its pixels that see less than that fraction of the sky (the gaps between
-    the pebbles on top, `scene.exposure`) made background."""
-    path = Path(results_root) / row["mask_path"]
-    mask = read_png(path)
-    if gap_sky_view > 0 and mask.any():  # (a scene without a visible particle has no gaps either)
-        view = scene_sky_view(path.parent)
-        mask = lit_mask(mask, view, gap_sky_view)
-    return mask
-
-
-def load_scenes(results_root: Path, rows: list[dict], particles: dict[str, dict[str, np.ndarray]] | None = None,
-                gap_sky_view: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+def load_scenes(results_root: Path, rows: list[dict],
+                particles: dict[str, dict[str, np.ndarray]] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """uint8 N×3×H×W images and float32 N×C×H×W targets (MAPS; the size map with `particles`,
-    `data.particles_by_scene` of the rows' datasets; `gap_sky_view`: `training_mask`) of manifest
-    rows (all one size)."""
+    `data.particles_by_scene` of the rows' datasets) of manifest rows (all one size)."""
     xs, ts = [], []
     for r in rows:
         img = read_png(Path(results_root) / r["image_path"])
-        mask = training_mask(results_root, r, gap_sky_view)
+        mask = read_png(Path(results_root) / r["mask_path"])
         if img.shape[:2] != mask.shape:
             raise PsdError(f"{r['scene_id']}: image {img.shape[:2]} and mask {mask.shape} differ in size")
         sizes = None

@@ -18,6 +18,7 @@ import torch
 
 from ... import PsdError, __version__
 from ...config import AUTO_SCALE_PROBE, config_fields, training_recipe
+from ...io import read_png
 from ...psd import NAMES, SOLID_DEFINITIONS, TARGETS, definition_targets
 from ..augment import TTA_VIEWS, photometric
 from ..data import label_definition, normalise, particles_by_scene, training_rows
@@ -42,7 +43,7 @@ from .measure import SIEVE_METHODS
 from .net import DECODER, FULL_RES, TRUNK, InstanceMaps, build_instance_net
 from .scoring import f1_score, match_instances
 from .stats import READOUTS
-from .targets import MAPS, boundary_weight, instance_loss, load_scenes, random_crops, training_mask
+from .targets import MAPS, boundary_weight, instance_loss, load_scenes, random_crops
 from .watershed import DEFAULT_POSTPROCESS, POSTPROCESS_GRID, postprocess
 
 logger = logging.getLogger(__name__)
@@ -60,14 +61,11 @@ class InstanceSettings:
     readout: str  # footprints | footprints+size_map: what the calibrated read-out reads (READOUTS)
     tta: str  # none | flips | d4: the views of each image whose maps are averaged (TTA_VIEWS)
     auto_scale: bool  # the model's meta says predict reads photos at the grains' scale by default
-    gap_sky_view: float  # particle pixels seeing less of the sky are taught as background (0 = off)
 
     @classmethod
     def from_dict(cls, d: dict) -> InstanceSettings:
-        # auto_scale and gap_sky_view are in a slice only when on (config.train_params): absent means off
-        s = cls(**config_fields(cls, {"auto_scale": False, "gap_sky_view": 0.0, **d}, "train.instances"))
-        if not 0 <= s.gap_sky_view < 1:
-            raise PsdError(f"train.instances.gap_sky_view must lie in [0, 1), got {s.gap_sky_view}")
+        # auto_scale is in a slice only when on (config.train_params): absent means off
+        s = cls(**config_fields(cls, {"auto_scale": False, **d}, "train.instances"))
         if s.sieve_method not in SIEVE_METHODS:
             raise PsdError(f"train.instances.sieve_method must be one of {', '.join(SIEVE_METHODS)}")
         if s.readout not in READOUTS:
@@ -153,9 +151,8 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     train_rows, val_rows, rows = training_rows(results_root, params.datasets)
     t_load = time.perf_counter()
     particles = particles_by_scene(results_root, params.datasets)  # the size map's targets
-    gaps = settings.gap_sky_view
-    x_train, t_train = load_scenes(results_root, train_rows, particles, gaps)
-    x_val, t_val = load_scenes(results_root, val_rows, particles, gaps)
+    x_train, t_train = load_scenes(results_root, train_rows, particles)
+    x_val, t_val = load_scenes(results_root, val_rows, particles)
     crop = min(int(params.input_size), *x_train.shape[-2:])
     pw = boundary_weight(t_train)
     model, weights_used = build_instance_net(params.pretrained)
@@ -165,12 +162,11 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     precision = training_precision(params.precision, device, model, crop, batch,
                                    lambda out: instance_loss(out, dummy, pw)[0])
     n_params = count_parameters(model)
-    gap_note = f", the gaps (sky view below {gaps:g}) taught as background" if gaps else ""
     logger.info(f"training {ARCH} ({TRUNK} trunk + U-Net decoder, {n_params / 1e6:.2f} M parameters, weights: "
                 f"{weights_used}) on {len(train_rows)} train / {len(val_rows)} val scenes of "
                 f"{', '.join(params.datasets)}: {settings.crops_per_image} random {crop}-px crops per image and "
                 f"epoch, {device} {precision}, {params.epochs} epochs, lr {settings.lr} ({params.lr_schedule}), "
-                f"boundary weight {pw:.1f}{gap_note} (targets made in {time.perf_counter() - t_load:.1f} s)")
+                f"boundary weight {pw:.1f} (targets made in {time.perf_counter() - t_load:.1f} s)")
     opt = torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=params.weight_decay)
     steps_per_epoch = math.ceil(len(x_train) * settings.crops_per_image / params.batch_size)
     sched = LrSchedule(opt, params.lr_schedule, params.epochs, steps_per_epoch, params.lr_factor, params.lr_patience)
@@ -212,7 +208,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
             "postprocess": dict(DEFAULT_POSTPROCESS), "tta": settings.tta}
     est = estimator(meta, torch_runner(InstanceMaps(model), device), model)  # as evaluate and predict run it
     val_maps = est.all_maps(x_val)
-    val_masks = [training_mask(results_root, r, gaps) for r in val_rows]  # the masks it learnt
+    val_masks = [read_png(Path(results_root) / r["mask_path"]) for r in val_rows]
     post, val_f1 = pick_postprocess(val_maps, val_masks)
     est.post = post
     grain_px = grain_sizes(est, x_val, val_maps)  # how large its grains look: predict's automatic scale
@@ -262,7 +258,6 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         "readout_features": settings.readout,
         "tta": settings.tta,
         "auto_scale": settings.auto_scale,  # predict's default reading (--auto-scale / --no-auto-scale)
-        "gap_sky_view": gaps,  # its grains are the particles' pixels that see at least this much of the sky
         "readout": readout,
         "readouts": readouts,  # the other solid size definitions (predict --size-definition)
         "boundary_pos_weight": pw,

@@ -17,11 +17,11 @@ import math
 import numpy as np
 from scipy import ndimage
 
-from ..exposure import gap_radius_mm, sky_view
 from ..geometry import CM, Geometry, gc_paused, global_faces, mesh_normals
 from .look import Look, RenderParams, mm_per_px
 from .raster import SPECULAR_COEFF, camera_matrices, raster_raw
 from .raster import rasteriser as raster_choice
+from .sky import horizon_radius_mm, sky_view
 
 
 def visual_meshes(geometry: Geometry, smooth: bool, scale: float) -> list[tuple[list, list, list]]:
@@ -196,7 +196,8 @@ def render_tiny(spec: dict, geometry: Geometry, pos_mm: np.ndarray, quats: np.nd
     """The fast backend → (rgb float32 HxWx3 in [0,1] before the sensor, uint16 mask, extra metadata)."""
     rgb, ids, height = tiny_raw(spec, geometry, pos_mm, quats, p, look)
     px_mm = mm_per_px(float(spec["table_size"]), p.resolution, look.view_fraction)
-    rgb = shade_tiny(rgb, ids, height, look, p, px_mm, rng, gap_radius_mm(geometry.dims_mm) if len(geometry) else 1.0)
+    radius = horizon_radius_mm(geometry.dims_mm) if len(geometry) else 1.0  # (render.occlusion: sky)
+    rgb = shade_tiny(rgb, ids, height, look, p, px_mm, rng, radius)
     s = p.supersample
     mask = ids[s // 2 :: s, s // 2 :: s].astype(np.uint16)  # each block's centre sample: exact ids
     return rgb, mask, {"supersample": s}
