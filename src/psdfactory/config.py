@@ -607,9 +607,17 @@ def render_params(config: dict, dataset: str | None = None) -> dict:
     for sub in SHARE_DRAWS:  # off (probability 0): their settings rerun nothing
         if not out.get(sub, {}).get("probability", 0):
             out.pop(sub, None)
-    if out.get("occlusion") == "crevice" or out["backend"] == "cycles":  # in the slice only where the tiny backend
-        out.pop("occlusion", None)  # renders and it is not the default: no render of before reruns
-    return out
+    if out["backend"] == "cycles":  # render.occlusion shades the tiny backend only
+        out.pop("occlusion", None)
+    return without_default_occlusion(out)
+
+
+def without_default_occlusion(render: dict) -> dict:
+    """A render slice without render.occlusion where it is the default (crevice): the slices of
+    before the setting stay as they were, so no render of before reruns."""
+    if render.get("occlusion") == "crevice":
+        del render["occlusion"]
+    return render
 
 
 def label_params(config: dict, dataset: str | None = None) -> dict:
@@ -625,10 +633,7 @@ def label_params(config: dict, dataset: str | None = None) -> dict:
 def compare_params(config: dict) -> dict:
     """The render settings, Cycles' included, for rendering scenes with both backends (render.occlusion
     only where it is not the default, as in render_params: the comparisons of before it do not rerun)."""
-    out = copy.deepcopy(config["render"])
-    if out.get("occlusion") == "crevice":
-        del out["occlusion"]
-    return out
+    return without_default_occlusion(copy.deepcopy(config["render"]))
 
 
 def ceiling_reference(config: dict, dataset: str) -> dict | None:
