@@ -95,3 +95,25 @@ def test_render_occlusion_is_in_a_slice_only_where_the_tiny_backend_renders_it_a
         RenderParams.from_dict({**params, "occlusion": "ambient"})
     with pytest.raises(PsdError, match="occlusion"):
         psd_config.validate({**tiny_config(), "render": {"occlusion": "ambient"}})
+
+
+def test_a_scene_rendered_with_sky_occlusion_is_darker_on_its_particles_and_keeps_its_mask(tmp_path):
+    from psdfactory.io import read_png
+    from psdfactory.scene.stages import run_render
+
+    from .conftest import split_dataset
+
+    (scene,) = split_dataset(tmp_path, ["train"], resolution=48)
+    cfg = tiny_config(count=[15, 25])
+    cfg["render"].update(resolution=48, occlusion_strength=[0.8, 0.8], jpeg_fraction=0.0)
+    images = {}
+    for occlusion in ("crevice", "sky"):
+        cfg["render"]["occlusion"] = occlusion
+        run_render(psd_config.render_params(cfg), scene)
+        images[occlusion] = read_png(scene / "image.png").astype(float).mean(axis=2)
+        mask = read_png(scene / "mask.png")
+        images[occlusion + "_mask"] = mask
+    np.testing.assert_array_equal(images["crevice_mask"], images["sky_mask"])  # the look changes, not the scene
+    on = images["sky_mask"] > 0
+    assert not np.array_equal(images["sky"], images["crevice"])
+    assert images["sky"][on].mean() < images["crevice"][on].mean()  # a bed's particles see less than the whole sky
