@@ -35,9 +35,18 @@ stopped (training itself resumes from its checkpoints/last.pt). Progress lines,
 each with the elapsed time and an ETA, go to stdout; each command's own log goes to the run's
 train.log / eval/evaluate.log, Snakemake's to <out>/snakemake.log.
 
+An arm that differs from a finished spread only in what the instance estimator does with its
+trained network (train.instances' tta, sieve_method, readout: config.CALIBRATION_SETTINGS) need not
+train it again: with --recalibrate-from <that spread's seed_spread folder> each seed's network is
+taken from there and only calibrated again (post-processing and read-out, a few minutes), so the
+arm and its baseline share their networks seed for seed (--results: a folder of its own holding the
+same datasets, e.g. hard links, `cp -al results_gravel/gravel arm/`).
+
     nice -n 10 .venv/bin/python bench/seed_spread.py                         # config/config.yaml, 3 seeds
     .venv/bin/python bench/seed_spread.py --seeds 5 --archs instances         # one model, 5 seeds
     .venv/bin/python bench/seed_spread.py --seed-list 42 7 11 --no-snakemake  # reuse results/ as it is
+    .venv/bin/python bench/seed_spread.py --config config/gravel.yaml --no-snakemake --results arm/ \
+        --set train.instances.tta=d4 --recalibrate-from results_gravel/seed_spread --out arm/spread
 
 The datasets cost what `make demo`'s scenes do (the Cycles re-render needs .venv-blender: `make
 blender`), and each seed what its training does (about 10 min on 2 idle AMD EPYC cores), plus the
@@ -264,8 +273,9 @@ def markdown(summary: dict) -> str:
                 rel = [f"{cell(m[n + '_mm'], digits=1, unit=' mm')}, {cell(m[n], 100, 0, ' %')}" for n in NAMES]
                 lines.append(f"| {ARCH_LABELS.get(arch, arch)} | {photo} | {m['d50']['n']} | {f1} | {size} | "
                              + " | ".join(rel) + " |")
-    lines += ["", "Training minutes per run (mean over seeds): "
-              + ", ".join(f"{ARCH_LABELS.get(a, a)} {t:.1f}" for a, t in summary["train_minutes"].items()) + "."]
+    if summary["train_minutes"]:  # none where every model was trained before, or calibrated again
+        lines += ["", "Training minutes per run (mean over seeds): "
+                  + ", ".join(f"{ARCH_LABELS.get(a, a)} {t:.1f}" for a, t in summary["train_minutes"].items()) + "."]
     return "\n".join(lines) + "\n"
 
 
@@ -318,6 +328,40 @@ def write_summary(out: Path, meta: dict, archs: list[str], seeds: list[int], dat
     (out / "spread.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")
     (out / "spread.md").write_text(md, encoding="utf-8")
     return md
+
+
+def recalibration_source(root: str, seed: int, arch: str, params: dict) -> Path | None:
+    """ROOT/<seed>/<arch>/model.pt where that run trained the network `params` train (the same network
+    recipe, config.network_recipe: it differs at most in settings applied after training); else None,
+    with the reason printed."""
+    from psdfactory import config as psd_config
+
+    run = Path(root) / str(seed) / arch
+    try:
+        theirs = json.loads((run / "params.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        print(f"    --recalibrate-from: no run record at {run / 'params.json'}: trained instead", flush=True)
+        return None
+    if arch != "instances" or psd_config.network_recipe(theirs) != psd_config.network_recipe(params):
+        print(f"    --recalibrate-from: {run} trained another network: trained instead", flush=True)
+        return None
+    return run / "model.pt" if (run / "model.pt").is_file() else None
+
+
+def recalibrate_run(source: Path, params: dict, results: Path, run: Path) -> None:
+    """The instance model `source` calibrated under `params`' settings into run/model.pt (the calibration's log
+    lines on stdout: what it picked, and its figures)."""
+    import logging
+
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=logging.INFO, format="    %(message)s", stream=sys.stdout)
+    from psdfactory.learn.instances.estimator import InstanceEstimator
+    from psdfactory.learn.instances.training import InstanceSettings, recalibrate
+
+    recalibrate(source, InstanceSettings.from_dict(params["settings"]), results, run / "model.pt", InstanceEstimator,
+                params["device"])
+    if (source.parent / "history.csv").is_file():  # the network's training curve, for the evaluation's plot
+        shutil.copyfile(source.parent / "history.csv", run / "history.csv")
 
 
 SETTABLE = ("train.", "evaluate.")  # the recipe; a dataset setting would not match the scenes Snakemake makes
@@ -388,6 +432,10 @@ def main() -> None:
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="change one train.* or evaluate.* setting of the config for these runs (a dotted key, "
                     "a YAML value: --set train.epochs=50 --set train.device=cuda); repeatable")
+    ap.add_argument("--recalibrate-from", metavar="DIR",
+                    help="a seed_spread folder of runs of the same network (e.g. results/seed_spread): a run that "
+                    "differs from its run of the same seed only in train.instances' tta, sieve_method or readout "
+                    "takes that network and calibrates it again (a minute) instead of training it")
     ap.add_argument("--write-config", metavar="FILE",
                     help="write the validated config (schema defaults filled in, --set applied) as JSON and stop: "
                     "--config FILE then runs it where Snakemake is not installed (a GPU node with the training "
@@ -473,9 +521,15 @@ def main() -> None:
             label = f"seed {seed} {ARCH_LABELS.get(arch, arch)}"
             info = run / "run.json"
             timing = json.loads(info.read_text(encoding="utf-8")) if info.is_file() else {}
+            source = recalibration_source(a.recalibrate_from, seed, arch, params) if a.recalibrate_from else None
             if (run / "model.pt").is_file():
                 progress.say(f"{label}: trained before, kept")
                 progress.finish(f"train {arch}", None)
+            elif source is not None:
+                progress.say(f"{label}: the network of {source} calibrated again ({params['settings']})")
+                t0 = time.monotonic()
+                recalibrate_run(source, params, results, run)
+                progress.finish(f"train {arch}", time.monotonic() - t0)
             else:
                 progress.say(f"{label}: training ({params['epochs']} epochs)")
                 cmd = [*psd, "--log", str(run / "train.log"), "train", "--params", pjson, "--results", str(results),

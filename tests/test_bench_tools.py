@@ -293,3 +293,21 @@ def test_readout_transfer_refuses_an_out_file_that_is_an_input_before_any_work(t
                        capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode != 0 and "is a folder or one of the inputs" in r.stderr, r.stderr
     assert (model.read_bytes(), config.read_text()) == before
+
+
+def test_recalibrate_from_takes_a_run_of_the_same_network_only(tmp_path, capsys):
+    """seed_spread.py --recalibrate-from: a run that differs only in the settings applied after training (tta,
+    sieve_method, readout) takes the other run's network; one of another network (or without a model) trains."""
+    seed_spread = bench_module("seed_spread")
+    mine = {"arch": "instances", "seed": 7, "lr": 0.001,
+            "settings": {"tta": "d4", "lr": 0.003, "readout": "footprints", "auto_scale": True}}
+    run = tmp_path / "7" / "instances"
+    run.mkdir(parents=True)
+    (run / "params.json").write_text(json.dumps({**mine, "settings": {**mine["settings"], "tta": "none"}}))
+    assert seed_spread.recalibration_source(str(tmp_path), 7, "instances", mine) is None  # no model.pt yet
+    (run / "model.pt").write_bytes(b"x")
+    assert seed_spread.recalibration_source(str(tmp_path), 7, "instances", mine) == run / "model.pt"
+    assert seed_spread.recalibration_source(str(tmp_path), 8, "instances", {**mine, "seed": 8}) is None
+    (run / "params.json").write_text(json.dumps({**mine, "settings": {**mine["settings"], "lr": 0.01}}))
+    assert seed_spread.recalibration_source(str(tmp_path), 7, "instances", mine) is None
+    assert "trained another network" in capsys.readouterr().out

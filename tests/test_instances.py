@@ -448,6 +448,64 @@ def test_tiny_training_writes_a_plain_model_file(tiny):
     assert len(rows) == 1 and float(rows[0]["train_loss"]) > 0
 
 
+def test_a_trained_network_calibrated_again_under_other_views_keeps_its_weights(tiny, tmp_path):
+    """recalibrate: the same network, the post-processing and read-out made again from its maps averaged over the
+    views train.instances.tta names (bench/seed_spread.py --recalibrate-from); the network recipe is blind to those
+    settings and to nothing else."""
+    from psdfactory.learn.instances.training import recalibrate
+    from psdfactory.learn.runtime import load_model
+
+    root, model_path, summary = tiny
+    params = summary["params"]
+    cfg = tiny_config(n_scenes=2, count=[15, 25])
+    settings = {**psd_config.train_params(cfg, "instances")["settings"], "tta": "d4"}
+    settings.pop("epochs", None), settings.pop("datasets", None)
+    meta = recalibrate(model_path, InstanceSettings.from_dict(settings), root, tmp_path / "model.pt",
+                       InstanceEstimator, "cpu")
+    assert meta["tta"] == "d4" and meta["recalibrated_from"] == str(model_path)
+    assert meta["readout"]["n_scenes"] == 2 and set(meta["postprocess"]) >= {"threshold", "h"}
+    before = torch.load(model_path, map_location="cpu", weights_only=True)["state_dict"]
+    after = torch.load(tmp_path / "model.pt", map_location="cpu", weights_only=True)["state_dict"]
+    assert before.keys() == after.keys() and all(torch.equal(before[k], after[k]) for k in before)
+    model, meta2 = load_model(tmp_path / "model.pt")
+    assert InstanceEstimator(meta2).views == TTA_VIEWS["d4"]
+    # a seed_spread run that differs in a calibration setting shares its network; one that differs in what the
+    # network learns does not
+    mine = {**params, "settings": dict(settings)}
+    assert psd_config.network_recipe({**mine, "settings": {**settings, "tta": "none", "readout": "footprints"}}) \
+        == psd_config.network_recipe(mine)
+    assert psd_config.network_recipe({**mine, "settings": {**settings, "lr": 0.5}}) != psd_config.network_recipe(mine)
+    assert psd_config.network_recipe({**mine, "seed": 2}) != psd_config.network_recipe(mine)
+
+
+def test_training_again_with_other_views_calibrates_the_finished_network_without_training_it(tiny, caplog):
+    """train.instances.tta edited in the config: the train rule reruns, finds the finished training of the same
+    network in its checkpoints and only calibrates it again (its history has no new epoch)."""
+    import logging
+    import shutil
+
+    from psdfactory.learn.train import train_from_params
+
+    root, model_path, summary = tiny
+    out = root / "models" / "instances_views"
+    shutil.copytree(model_path.parent, out)
+    cfg = tiny_config(n_scenes=2, count=[15, 25])
+    params = tiny_instance_params(cfg)
+    params["settings"]["tta"] = "flips"
+    with caplog.at_level(logging.INFO):
+        meta = train_from_params(params, root, out)
+    assert meta["tta"] == "flips" and meta["epochs_run"] == 1 == summary["epochs_run"]
+    assert "resuming" in caplog.text and "ignoring" not in caplog.text
+    before = torch.load(model_path, map_location="cpu", weights_only=True)["state_dict"]
+    after = torch.load(out / "model.pt", map_location="cpu", weights_only=True)["state_dict"]
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    params["settings"]["lr"] = 0.01  # what the network learns: trained anew
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        train_from_params(params, root, out)
+    assert "ignoring" in caplog.text
+
+
 def test_readout_of_footprints_and_size_map(tiny, tmp_path, few_grains_read):
     """train.instances.readout picks the read-out's statistics: the size map's too, or not."""
     from psdfactory.learn.train import train_from_params

@@ -706,6 +706,10 @@ def main_training_dataset(config: dict) -> str:
 # train.<arch> settings that change the model's meta only (how predict reads with it), not what it learns: runs
 # that differ in them are one recipe (the training's fingerprint, report.same_recipe, bench/seed_spread.py)
 META_ONLY_SETTINGS = ("auto_scale",)
+# train.<arch> settings that change what a trained network's maps are made into (the instance estimator's calibration
+# after training: its views, its sieve-size method, its read-out), not the network: runs that differ only in them
+# share their network (bench/seed_spread.py --recalibrate-from)
+CALIBRATION_SETTINGS = ("tta", "sieve_method", "readout")
 
 
 def training_recipe(params: dict) -> dict:
@@ -713,6 +717,15 @@ def training_recipe(params: dict) -> dict:
     out = dict(params)
     if isinstance(out.get("settings"), dict):
         out["settings"] = {k: v for k, v in out["settings"].items() if k not in META_ONLY_SETTINGS}
+    return out
+
+
+def network_recipe(params: dict) -> dict:
+    """A `train_params` slice without the settings that change no trained network's weights
+    (META_ONLY_SETTINGS, CALIBRATION_SETTINGS)."""
+    out = training_recipe(params)
+    if isinstance(out.get("settings"), dict):
+        out["settings"] = {k: v for k, v in out["settings"].items() if k not in CALIBRATION_SETTINGS}
     return out
 
 

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ... import PsdError, __version__
-from ...config import AUTO_SCALE_PROBE, config_fields, training_recipe
+from ...config import AUTO_SCALE_PROBE, config_fields, network_recipe
 from ...io import read_png
 from ...psd import NAMES, SOLID_DEFINITIONS, TARGETS, definition_targets
 from ..augment import TTA_VIEWS, photometric
@@ -139,6 +139,60 @@ def grain_sizes(est, x_val: torch.Tensor, val_maps: np.ndarray) -> dict:
             GRAIN_PROBE_KEY: AUTO_SCALE_PROBE}
 
 
+def calibrate(model, device, settings: InstanceSettings, weights_used: str, results_root: Path, train_rows: list[dict],
+              val_rows: list[dict], x_train: torch.Tensor, x_val: torch.Tensor, estimator: type) -> dict:
+    """What a trained network's model file holds beside its weights, from its maps as evaluate and
+    predict make them (averaged over the views ``settings.tta`` names): the post-processing picked on
+    the validation masks, how large the validation grains look (predict's automatic scale), and the
+    read-outs fitted on the training and validation scenes' predicted instances. Returns those meta
+    entries and ``val_mae_mm`` (the calibrated validation error, in the read-out's fit)."""
+    t0 = time.perf_counter()
+    meta = {"arch": ARCH, "weights": weights_used, "sieve_method": settings.sieve_method, "readout": None,
+            "postprocess": dict(DEFAULT_POSTPROCESS), "tta": settings.tta}
+    est = estimator(meta, torch_runner(InstanceMaps(model), device), model)  # as evaluate and predict run it
+    val_maps = est.all_maps(x_val)
+    val_masks = [read_png(Path(results_root) / r["mask_path"]) for r in val_rows]
+    post, val_f1 = pick_postprocess(val_maps, val_masks)
+    est.post = post
+    grain_px = grain_sizes(est, x_val, val_maps)  # how large its grains look: predict's automatic scale
+    train_maps = est.all_maps(x_train)
+    train_res = [est.analyse_maps(mp, float(r["mm_per_px"])) for mp, r in zip(train_maps, train_rows, strict=True)]
+    val_res = [est.analyse_maps(mp, float(r["mm_per_px"])) for mp, r in zip(val_maps, val_rows, strict=True)]
+    y_train, y_val = label_targets(train_rows).numpy(), label_targets(val_rows).numpy()
+    # the read-out is fitted on the training and the validation scenes: the network has learnt
+    # the training images, so its instances there are better than on new images; the validation
+    # images show the read-out what the network makes of images it has not seen
+    stats = np.stack([r.stats for r in train_res + val_res])
+    readout = fit_readout(stats, np.concatenate([y_train, y_val]), features=READOUTS[settings.readout])
+    readouts = other_readouts(stats, train_rows + val_rows, READOUTS[settings.readout])
+    val_cal = regression_metrics(y_val, apply_readout(readout, np.stack([r.stats for r in val_res])))
+    val_raw = regression_metrics(y_val, np.nan_to_num(np.stack([r.raw for r in val_res])))
+    r2s = {k: " / ".join(f"{m[n]['r2']:.3f}" for n in NAMES) for k, m in (("cal", val_cal), ("raw", val_raw))}
+    cv = " / ".join(f"{v:.3f}" for v in readout["cv_r2"]) if readout["cv_r2"] else "n/a (too few scenes)"
+    logger.info(f"read-out ({settings.readout}) fitted on {len(train_rows)} training + {len(val_rows)} validation "
+                f"scenes (ridge {readout['alpha']:g}): cross-validated R² {cv}; validation R² calibrated (in the "
+                f"fit) {r2s['cal']}, raw {r2s['raw']} ({time.perf_counter() - t0:.0f} s)")
+    if grain_px:
+        logger.info(f"the validation images' grains look {grain_px['grain_px']:.1f} px (median over the images of the "
+                    f"size map's area-weighted median), at most {grain_px['grain_px_max']:.1f} px, and at most "
+                    f"{grain_px['grain_px_probe_max']:.1f} px as seen at {AUTO_SCALE_PROBE} x the scale: predict reads "
+                    "a photo whose grains look larger than that where they look the median's size")
+    return {
+        "postprocess": post,
+        **grain_px,
+        "sieve_method": settings.sieve_method,
+        "readout_features": settings.readout,
+        "tta": settings.tta,
+        "readout": readout,
+        "readouts": readouts,  # the other solid size definitions (predict --size-definition)
+        # the validation scenes are in the read-out's fit: its out-of-fold R² is the honest figure
+        "val": {"f1": val_f1, "r2_readout_cv": readout["cv_r2"],
+                "r2_calibrated_in_fit": [val_cal[n]["r2"] for n in NAMES],
+                "r2_raw": [val_raw[n]["r2"] for n in NAMES]},
+        "val_mae_mm": val_cal["overall"]["mae"],
+    }
+
+
 def train_instances(params, settings: InstanceSettings, results_root: Path, out_dir: Path, estimator: type) -> dict:
     """Train the instance estimator (`params`: learn.train.TrainParams with arch 'instances') on
     a dataset's train split, select by validation loss, pick the post-processing on the
@@ -196,47 +250,18 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
                    lambda: {"val_loss": val_loss(model, x_val, t_val, device, precision, pw)},
                    len(x_train) * settings.crops_per_image, "crop", generators={"gen": gen}, scaler=scaler)
     ids = [(r["scene_id"], r["split"], *(r[t] for t in TARGETS)) for r in rows]
-    # without the settings that change the meta only (predict's default reading), not what the network learns
-    fp = fingerprint(training_recipe({**asdict(params), "settings": asdict(settings)}), ids)
+    # without the settings that change the meta only (predict's default reading) or the calibration after training
+    # (config.network_recipe): a run that differs in them resumes the same network's finished training
+    fp = fingerprint(network_recipe({**asdict(params), "settings": asdict(settings)}), ids)
     res = fit(task, ARCH, params.epochs, params.early_stopping_patience, out_dir, fp,
               {"arch": ARCH, "maps": list(MAPS)})
     model.eval()
 
-    # calibration: post-processing on the validation masks, the read-out on the training split
-    t0 = time.perf_counter()
-    meta = {"arch": ARCH, "weights": weights_used, "sieve_method": settings.sieve_method, "readout": None,
-            "postprocess": dict(DEFAULT_POSTPROCESS), "tta": settings.tta}
-    est = estimator(meta, torch_runner(InstanceMaps(model), device), model)  # as evaluate and predict run it
-    val_maps = est.all_maps(x_val)
-    val_masks = [read_png(Path(results_root) / r["mask_path"]) for r in val_rows]
-    post, val_f1 = pick_postprocess(val_maps, val_masks)
-    est.post = post
-    grain_px = grain_sizes(est, x_val, val_maps)  # how large its grains look: predict's automatic scale
-    train_maps = est.all_maps(x_train)
-    train_res = [est.analyse_maps(mp, float(r["mm_per_px"])) for mp, r in zip(train_maps, train_rows, strict=True)]
-    val_res = [est.analyse_maps(mp, float(r["mm_per_px"])) for mp, r in zip(val_maps, val_rows, strict=True)]
-    y_train, y_val = label_targets(train_rows).numpy(), label_targets(val_rows).numpy()
-    # the read-out is fitted on the training and the validation scenes: the network has learnt
-    # the training images, so its instances there are better than on new images; the validation
-    # images show the read-out what the network makes of images it has not seen
-    stats = np.stack([r.stats for r in train_res + val_res])
-    readout = fit_readout(stats, np.concatenate([y_train, y_val]), features=READOUTS[settings.readout])
-    readouts = other_readouts(stats, train_rows + val_rows, READOUTS[settings.readout])
-    val_cal = regression_metrics(y_val, apply_readout(readout, np.stack([r.stats for r in val_res])))
-    val_raw = regression_metrics(y_val, np.nan_to_num(np.stack([r.raw for r in val_res])))
+    calib = calibrate(model, device, settings, weights_used, results_root, train_rows, val_rows, x_train, x_val,
+                      estimator)
     history = res.history
-    history[-1]["val_mae_mm"] = val_cal["overall"]["mae"]
+    history[-1]["val_mae_mm"] = calib.pop("val_mae_mm")
     write_history(history, out_dir / "history.csv")
-    r2s = {k: " / ".join(f"{m[n]['r2']:.3f}" for n in NAMES) for k, m in (("cal", val_cal), ("raw", val_raw))}
-    cv = " / ".join(f"{v:.3f}" for v in readout["cv_r2"]) if readout["cv_r2"] else "n/a (too few scenes)"
-    logger.info(f"read-out ({settings.readout}) fitted on {len(train_rows)} training + {len(val_rows)} validation "
-                f"scenes (ridge {readout['alpha']:g}): cross-validated R² {cv}; validation R² calibrated (in the "
-                f"fit) {r2s['cal']}, raw {r2s['raw']} ({time.perf_counter() - t0:.0f} s)")
-    if grain_px:
-        logger.info(f"the validation images' grains look {grain_px['grain_px']:.1f} px (median over the images of the "
-                    f"size map's area-weighted median), at most {grain_px['grain_px_max']:.1f} px, and at most "
-                    f"{grain_px['grain_px_probe_max']:.1f} px as seen at {AUTO_SCALE_PROBE} x the scale: predict reads "
-                    "a photo whose grains look larger than that where they look the median's size")
 
     res_px = int(np.median([r["resolution"] for r in train_rows]))
     summary = {
@@ -252,19 +277,9 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         **label_definition(train_rows + val_rows),
         "weights": weights_used,
         "maps": list(MAPS),
-        "postprocess": post,
-        **grain_px,
-        "sieve_method": settings.sieve_method,
-        "readout_features": settings.readout,
-        "tta": settings.tta,
+        **calib,
         "auto_scale": settings.auto_scale,  # predict's default reading (--auto-scale / --no-auto-scale)
-        "readout": readout,
-        "readouts": readouts,  # the other solid size definitions (predict --size-definition)
         "boundary_pos_weight": pw,
-        # the validation scenes are in the read-out's fit: its out-of-fold R² is the honest figure
-        "val": {"f1": val_f1, "r2_readout_cv": readout["cv_r2"],
-                "r2_calibrated_in_fit": [val_cal[n]["r2"] for n in NAMES],
-                "r2_raw": [val_raw[n]["r2"] for n in NAMES]},
         "params": asdict(params),
         "n_parameters": n_params,
         "psdfactory_version": __version__,
@@ -279,3 +294,29 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     logger.info(f"done: best val loss {res.best_loss:.4f} at epoch {res.best_epoch} ({res.stop_reason}), "
                 f"{res.seconds:.0f} s of training; wrote {out_dir / 'model.pt'}")
     return summary
+
+
+def recalibrate(model_path: Path, settings: InstanceSettings, results_root: Path, out_path: Path,
+                estimator: type, device: str = "auto") -> dict:
+    """A trained instance model calibrated again under other calibration settings (``tta``,
+    ``sieve_method``, ``readout``: what the trained network's maps are made into, not what it
+    learnt), on the training and validation scenes it was trained on; writes the model to
+    `out_path` with its network unchanged and returns its meta. For measuring those settings on
+    trained networks without training them again (bench/instance_views.py)."""
+    from ..runtime import load_model
+
+    dev = pick_device(device)
+    model, meta = load_model(model_path, dev)
+    if meta.get("arch") != ARCH:
+        raise PsdError(f"{model_path} is a {meta.get('arch')!r} model, not the instance estimator")
+    model.eval()
+    params = meta["params"]
+    train_rows, val_rows, _ = training_rows(results_root, params["datasets"])
+    x_train, _ = load_scenes(results_root, train_rows)
+    x_val, _ = load_scenes(results_root, val_rows)
+    calib = calibrate(model, dev, settings, meta["weights"], results_root, train_rows, val_rows, x_train, x_val,
+                      estimator)
+    calib.pop("val_mae_mm")
+    new = {**meta, **calib, "recalibrated_from": str(model_path)}
+    save_model(out_path, model, new)
+    return new
