@@ -38,7 +38,7 @@ train.log / eval/evaluate.log, Snakemake's to <out>/snakemake.log.
 An arm that differs from a finished spread only in what the instance estimator does with its
 trained network (train.instances' tta, sieve_method, readout: config.CALIBRATION_SETTINGS) need not
 train it again: with --recalibrate-from <that spread's seed_spread folder> each seed's network is
-taken from there and only calibrated again (post-processing and read-out, a few minutes), so the
+taken from there and only calibrated again (post-processing and read-out: minutes), so the
 arm and its baseline share their networks seed for seed (--results: a folder of its own holding the
 same datasets, e.g. hard links, `cp -al results_gravel/gravel arm/`).
 
@@ -56,6 +56,7 @@ evaluations; on cores shared with other work, many times that.
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
 import re
@@ -330,22 +331,29 @@ def write_summary(out: Path, meta: dict, archs: list[str], seeds: list[int], dat
     return md
 
 
-def recalibration_source(root: str, seed: int, arch: str, params: dict) -> Path | None:
+def recalibration_source(root: str, seed: int, arch: str, params: dict, data: str) -> Path | None:
     """ROOT/<seed>/<arch>/model.pt where that run trained the network `params` train (the same network
-    recipe, config.network_recipe: it differs at most in settings applied after training); else None,
-    with the reason printed."""
+    recipe, config.network_recipe: it differs at most in settings applied after training) on the same
+    scenes and labels (`data`, its data.json); else None, with the reason printed."""
     from psdfactory import config as psd_config
 
     run = Path(root) / str(seed) / arch
     try:
         theirs = json.loads((run / "params.json").read_text(encoding="utf-8"))
+        their_data = json.loads((run / "data.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
-        print(f"    --recalibrate-from: no run record at {run / 'params.json'}: trained instead", flush=True)
+        print(f"    --recalibrate-from: no run record at {run} (params.json, data.json): trained instead", flush=True)
         return None
     if arch != "instances" or psd_config.network_recipe(theirs) != psd_config.network_recipe(params):
         print(f"    --recalibrate-from: {run} trained another network: trained instead", flush=True)
         return None
-    return run / "model.pt" if (run / "model.pt").is_file() else None
+    if their_data != data:
+        print(f"    --recalibrate-from: {run} was trained on other scenes or labels: trained instead", flush=True)
+        return None
+    if not (run / "model.pt").is_file():
+        print(f"    --recalibrate-from: {run} has no model.pt (not finished): trained instead", flush=True)
+        return None
+    return run / "model.pt"
 
 
 def recalibrate_run(source: Path, params: dict, results: Path, run: Path) -> None:
@@ -358,10 +366,17 @@ def recalibrate_run(source: Path, params: dict, results: Path, run: Path) -> Non
     from psdfactory.learn.instances.estimator import InstanceEstimator
     from psdfactory.learn.instances.training import InstanceSettings, recalibrate
 
-    recalibrate(source, InstanceSettings.from_dict(params["settings"]), results, run / "model.pt", InstanceEstimator,
-                params["device"])
-    if (source.parent / "history.csv").is_file():  # the network's training curve, for the evaluation's plot
-        shutil.copyfile(source.parent / "history.csv", run / "history.csv")
+    _, val_mae = recalibrate(source, InstanceSettings.from_dict(params["settings"]), results, run / "model.pt",
+                             InstanceEstimator, params["device"])
+    history = source.parent / "history.csv"
+    if history.is_file():  # the network's training curve, for the evaluation's plot, with this calibration's error
+        rows = list(csv.DictReader(history.open(encoding="utf-8")))
+        if rows:
+            rows[-1]["val_mae_mm"] = repr(val_mae)
+            with (run / "history.csv").open("w", encoding="utf-8", newline="") as f:
+                w = csv.DictWriter(f, fieldnames=list(rows[0]))
+                w.writeheader()
+                w.writerows(rows)
 
 
 SETTABLE = ("train.", "evaluate.")  # the recipe; a dataset setting would not match the scenes Snakemake makes
@@ -501,9 +516,13 @@ def main() -> None:
             try:
                 same = stamp.is_file() and (psd_config.training_recipe(json.loads(stamp.read_text(encoding="utf-8")))
                                             == psd_config.training_recipe(params))
-                same = same and data_stamp.is_file() and json.loads(data_stamp.read_text(encoding="utf-8")) == data
+                same_data = data_stamp.is_file() and json.loads(data_stamp.read_text(encoding="utf-8")) == data
+                same_network = same_data and stamp.is_file() and (
+                    psd_config.network_recipe(json.loads(stamp.read_text(encoding="utf-8")))
+                    == psd_config.network_recipe(params))
+                same = same and same_data
             except (TypeError, ValueError):  # a stamp cut short (JSONDecodeError) or edited: not this recipe's
-                same = False
+                same = same_network = False
             if a.summarise_only:
                 done = same and all((run / f).is_file() for f in (
                     "model.pt", "eval/metrics.json", *(f"eval/photos/{n}/metrics.json" for n in photo_sets)))
@@ -515,13 +534,16 @@ def main() -> None:
             if not same and (run / "model.pt").exists():  # another recipe's model: train anew
                 for p in (run / "model.pt", run / "history.csv", run / "eval"):
                     shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
-                shutil.rmtree(run / "checkpoints", ignore_errors=True)
+                if not same_network:  # the same network calibrated otherwise: training resumes its checkpoints
+                    shutil.rmtree(run / "checkpoints", ignore_errors=True)
             stamp.write_text(pjson, encoding="utf-8")
             data_stamp.write_text(json.dumps(data), encoding="utf-8")
             label = f"seed {seed} {ARCH_LABELS.get(arch, arch)}"
             info = run / "run.json"
             timing = json.loads(info.read_text(encoding="utf-8")) if info.is_file() else {}
-            source = recalibration_source(a.recalibrate_from, seed, arch, params) if a.recalibrate_from else None
+            source = None
+            if a.recalibrate_from and not (run / "model.pt").is_file() and arch == "instances":
+                source = recalibration_source(a.recalibrate_from, seed, arch, params, data)
             if (run / "model.pt").is_file():
                 progress.say(f"{label}: trained before, kept")
                 progress.finish(f"train {arch}", None)

@@ -296,18 +296,24 @@ def test_readout_transfer_refuses_an_out_file_that_is_an_input_before_any_work(t
 
 
 def test_recalibrate_from_takes_a_run_of_the_same_network_only(tmp_path, capsys):
-    """seed_spread.py --recalibrate-from: a run that differs only in the settings applied after training (tta,
-    sieve_method, readout) takes the other run's network; one of another network (or without a model) trains."""
+    """seed_spread.py --recalibrate-from: a finished run that differs only in the settings applied after training
+    (tta, sieve_method, readout), on the same scenes and labels, lends its network; another network, other data or
+    an unfinished run does not."""
     seed_spread = bench_module("seed_spread")
     mine = {"arch": "instances", "seed": 7, "lr": 0.001,
             "settings": {"tta": "d4", "lr": 0.003, "readout": "footprints", "auto_scale": True}}
     run = tmp_path / "7" / "instances"
     run.mkdir(parents=True)
     (run / "params.json").write_text(json.dumps({**mine, "settings": {**mine["settings"], "tta": "none"}}))
-    assert seed_spread.recalibration_source(str(tmp_path), 7, "instances", mine) is None  # no model.pt yet
+    (run / "data.json").write_text(json.dumps("abc"))
+    source = seed_spread.recalibration_source
+    assert source(str(tmp_path), 7, "instances", mine, "abc") is None  # no model.pt yet
+    assert "not finished" in capsys.readouterr().out
     (run / "model.pt").write_bytes(b"x")
-    assert seed_spread.recalibration_source(str(tmp_path), 7, "instances", mine) == run / "model.pt"
-    assert seed_spread.recalibration_source(str(tmp_path), 8, "instances", {**mine, "seed": 8}) is None
+    assert source(str(tmp_path), 7, "instances", mine, "abc") == run / "model.pt"
+    assert source(str(tmp_path), 7, "instances", mine, "other") is None
+    assert "other scenes or labels" in capsys.readouterr().out
+    assert source(str(tmp_path), 8, "instances", {**mine, "seed": 8}, "abc") is None
     (run / "params.json").write_text(json.dumps({**mine, "settings": {**mine["settings"], "lr": 0.01}}))
-    assert seed_spread.recalibration_source(str(tmp_path), 7, "instances", mine) is None
+    assert source(str(tmp_path), 7, "instances", mine, "abc") is None
     assert "trained another network" in capsys.readouterr().out

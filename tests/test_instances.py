@@ -460,9 +460,11 @@ def test_a_trained_network_calibrated_again_under_other_views_keeps_its_weights(
     cfg = tiny_config(n_scenes=2, count=[15, 25])
     settings = {**psd_config.train_params(cfg, "instances")["settings"], "tta": "d4"}
     settings.pop("epochs", None), settings.pop("datasets", None)
-    meta = recalibrate(model_path, InstanceSettings.from_dict(settings), root, tmp_path / "model.pt",
-                       InstanceEstimator, "cpu")
-    assert meta["tta"] == "d4" and meta["recalibrated_from"] == str(model_path)
+    settings["auto_scale"] = True
+    meta, val_mae = recalibrate(model_path, InstanceSettings.from_dict(settings), root, tmp_path / "model.pt",
+                                InstanceEstimator, "cpu")
+    assert meta["tta"] == "d4" and meta["recalibrated_from"] == str(model_path) and val_mae >= 0
+    assert meta["auto_scale"] is True  # predict's default reading is the new settings', not the source's
     assert meta["readout"]["n_scenes"] == 2 and set(meta["postprocess"]) >= {"threshold", "h"}
     before = torch.load(model_path, map_location="cpu", weights_only=True)["state_dict"]
     after = torch.load(tmp_path / "model.pt", map_location="cpu", weights_only=True)["state_dict"]
@@ -499,6 +501,26 @@ def test_training_again_with_other_views_calibrates_the_finished_network_without
     before = torch.load(model_path, map_location="cpu", weights_only=True)["state_dict"]
     after = torch.load(out / "model.pt", map_location="cpu", weights_only=True)["state_dict"]
     assert all(torch.equal(before[k], after[k]) for k in before)
+    # a checkpoint written before 2026-11-28, whose fingerprint held the calibration settings, resumes as well
+    from dataclasses import asdict
+
+    from psdfactory.learn.data import training_rows
+    from psdfactory.learn.fit import fingerprint
+    from psdfactory.learn.runtime import load_checkpoint, write_torch
+    from psdfactory.learn.train import TrainParams
+    from psdfactory.psd import TARGETS
+
+    p = dict(params)
+    old_settings = {**asdict(InstanceSettings.from_dict(p.pop("settings"))), "tta": "none"}
+    ck = load_checkpoint(out / "checkpoints" / "last.pt", "training checkpoint")
+    rows = [(r["scene_id"], r["split"], *(r[t] for t in TARGETS)) for r in training_rows(root, params["datasets"])[2]]
+    ck["fingerprint"] = fingerprint(psd_config.training_recipe({**asdict(TrainParams.from_dict(p)),
+                                                                "settings": old_settings}), rows)
+    write_torch(out / "checkpoints" / "last.pt", ck)
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        assert train_from_params(params, root, out)["epochs_run"] == 1
+    assert "resuming" in caplog.text and "ignoring" not in caplog.text
     params["settings"]["lr"] = 0.01  # what the network learns: trained anew
     caplog.clear()
     with caplog.at_level(logging.INFO):

@@ -95,13 +95,15 @@ def _state(task: FitTask, fp: str, epoch: int, history: list[dict], best: float,
     }
 
 
-def _resume(task: FitTask, path: Path, fp: str, name: str) -> tuple[int, list[dict], float, int, int]:
-    """(first epoch, history, best, best epoch, stale) from `path` when it matches `fp`."""
+def _resume(task: FitTask, path: Path, fp: str, name: str, also: tuple[str, ...] = ()
+            ) -> tuple[int, list[dict], float, int, int]:
+    """(first epoch, history, best, best epoch, stale) from `path` when it matches `fp` (or one of
+    `also`: the same training's fingerprints as older versions computed them)."""
     fresh = (0, [], math.inf, -1, 0)
     if not path.is_file():
         return fresh
     ck = load_checkpoint(path, "training checkpoint")
-    if ck.get("fingerprint") != fp or "modules" not in ck:
+    if ck.get("fingerprint") not in (fp, *also) or "modules" not in ck:
         logger.info(f"ignoring {path}: it was made with other settings or data")
         return fresh
     for k, m in {"model": task.model, **task.modules}.items():
@@ -119,7 +121,7 @@ def _resume(task: FitTask, path: Path, fp: str, name: str) -> tuple[int, list[di
 
 
 def fit(task: FitTask, name: str, epochs: int, patience: int, out_dir: Path, fp: str, meta: dict,
-        ranks: Ranks = SINGLE) -> FitResult:
+        ranks: Ranks = SINGLE, also_fp: tuple[str, ...] = ()) -> FitResult:
     """Train `task` for up to `epochs` epochs; the best weights (by validation loss) are in
     `task.model` at the end and in ``checkpoints/best.pt`` (with `meta`). Refuses a run that
     trained no epoch. Of several `ranks`, rank 0 alone writes files and logs; all decide alike."""
@@ -128,7 +130,7 @@ def fit(task: FitTask, name: str, epochs: int, patience: int, out_dir: Path, fp:
 
     ckpt_dir = out_dir / "checkpoints"
     last_path = ckpt_dir / "last.pt"
-    start, history, best, best_epoch, stale = _resume(task, last_path, fp, name)
+    start, history, best, best_epoch, stale = _resume(task, last_path, fp, name, also_fp)
     tb = SummaryWriter(str(out_dir / "tensorboard")) if ranks.main else None
     talk = ranks.main and logger.isEnabledFor(logging.INFO)
     stop_reason = "max epochs"
@@ -174,6 +176,8 @@ def fit(task: FitTask, name: str, epochs: int, patience: int, out_dir: Path, fp:
             tb.close()
     if best_epoch < 0:
         raise PsdError("no epoch was trained (train.epochs must be ≥ 1)")
+    if stale >= patience:  # also a finished run resumed, which had stopped early at its last epoch
+        stop_reason = f"early stopping (no better val loss for {stale} epochs)"
     barrier(ranks)  # best.pt is rank 0's: the others read it once it is written
     task.model.load_state_dict(load_checkpoint(ckpt_dir / "best.pt", "training checkpoint")["state_dict"])
     return FitResult(best, best_epoch, history, stop_reason, time.perf_counter() - t_start)

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ... import PsdError, __version__
-from ...config import AUTO_SCALE_PROBE, config_fields, network_recipe
+from ...config import AUTO_SCALE_PROBE, config_fields, network_recipe, training_recipe
 from ...io import read_png
 from ...psd import NAMES, SOLID_DEFINITIONS, TARGETS, definition_targets
 from ..augment import TTA_VIEWS, photometric
@@ -193,6 +193,16 @@ def calibrate(model, device, settings: InstanceSettings, weights_used: str, resu
     }
 
 
+def legacy_fingerprints(params, settings: InstanceSettings, ids: list) -> tuple[str, ...]:
+    """The fingerprints the same training had before 2026-11-28, when they held the calibration settings too
+    (config.CALIBRATION_SETTINGS, under any of their values): a checkpoint written then still resumes."""
+    out = []
+    for tta, sieve, readout in itertools.product(TTA_VIEWS, SIEVE_METHODS, READOUTS):
+        old = {**asdict(settings), "tta": tta, "sieve_method": sieve, "readout": readout}
+        out.append(fingerprint(training_recipe({**asdict(params), "settings": old}), ids))
+    return tuple(out)
+
+
 def train_instances(params, settings: InstanceSettings, results_root: Path, out_dir: Path, estimator: type) -> dict:
     """Train the instance estimator (`params`: learn.train.TrainParams with arch 'instances') on
     a dataset's train split, select by validation loss, pick the post-processing on the
@@ -254,7 +264,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     # (config.network_recipe): a run that differs in them resumes the same network's finished training
     fp = fingerprint(network_recipe({**asdict(params), "settings": asdict(settings)}), ids)
     res = fit(task, ARCH, params.epochs, params.early_stopping_patience, out_dir, fp,
-              {"arch": ARCH, "maps": list(MAPS)})
+              {"arch": ARCH, "maps": list(MAPS)}, also_fp=legacy_fingerprints(params, settings, ids))
     model.eval()
 
     calib = calibrate(model, device, settings, weights_used, results_root, train_rows, val_rows, x_train, x_val,
@@ -286,37 +296,48 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         "best_epoch": res.best_epoch,
         "epochs_run": len(history),
         "stop_reason": res.stop_reason,
-        "train_seconds": res.seconds,
+        "train_seconds": sum(r["seconds"] for r in history),  # a resumed run's epochs before too
         "precision": precision,
         "device": str(device),
     }
     save_model(out_dir / "model.pt", model, summary)
     logger.info(f"done: best val loss {res.best_loss:.4f} at epoch {res.best_epoch} ({res.stop_reason}), "
-                f"{res.seconds:.0f} s of training; wrote {out_dir / 'model.pt'}")
+                f"{summary['train_seconds']:.0f} s of training ({res.seconds:.0f} s in this run); wrote "
+                f"{out_dir / 'model.pt'}")
     return summary
 
 
 def recalibrate(model_path: Path, settings: InstanceSettings, results_root: Path, out_path: Path,
-                estimator: type, device: str = "auto") -> dict:
+                estimator: type, device: str = "auto") -> tuple[dict, float]:
     """A trained instance model calibrated again under other calibration settings (``tta``,
     ``sieve_method``, ``readout``: what the trained network's maps are made into, not what it
-    learnt), on the training and validation scenes it was trained on; writes the model to
-    `out_path` with its network unchanged and returns its meta. For measuring those settings on
-    trained networks without training them again (bench/instance_views.py)."""
-    from ..runtime import load_model
+    learnt; and predict's default reading, ``auto_scale``), on the training and validation scenes it
+    was trained on; writes the model to `out_path` with its network unchanged and returns its meta
+    and the calibrated validation error (mm). A correction `psdfactory calibrate` had fitted to the
+    old readings is dropped (it corrected readings this model no longer makes). For measuring those
+    settings on trained networks without training them again (bench/seed_spread.py
+    --recalibrate-from)."""
+    from ..runtime import load_model, meta_problems
 
     dev = pick_device(device)
     model, meta = load_model(model_path, dev)
-    if meta.get("arch") != ARCH:
-        raise PsdError(f"{model_path} is a {meta.get('arch')!r} model, not the instance estimator")
+    if meta.get("arch") != ARCH or not isinstance(meta.get("params"), dict) or "datasets" not in meta["params"]:
+        raise PsdError(f"{model_path} is not an instance estimator trained by this version (arch "
+                       f"{meta.get('arch')!r}, no params.datasets in its meta): train it again")
     model.eval()
-    params = meta["params"]
-    train_rows, val_rows, _ = training_rows(results_root, params["datasets"])
+    train_rows, val_rows, _ = training_rows(results_root, meta["params"]["datasets"])
     x_train, _ = load_scenes(results_root, train_rows)
     x_val, _ = load_scenes(results_root, val_rows)
-    calib = calibrate(model, dev, settings, meta["weights"], results_root, train_rows, val_rows, x_train, x_val,
-                      estimator)
-    calib.pop("val_mae_mm")
-    new = {**meta, **calib, "recalibrated_from": str(model_path)}
+    calib = calibrate(model, dev, settings, meta.get("weights", "unknown"), results_root, train_rows, val_rows,
+                      x_train, x_val, estimator)
+    val_mae = calib.pop("val_mae_mm")
+    if "calibration" in meta:
+        logger.warning(f"{model_path} carries a correction fitted by psdfactory calibrate: it is left out of "
+                       f"{out_path} (calibrate the new model again)")
+    new = {**{k: v for k, v in meta.items() if k != "calibration"}, **calib, "auto_scale": settings.auto_scale,
+           "recalibrated_from": str(model_path)}
+    problems = meta_problems(new)
+    if problems:
+        raise PsdError(f"{model_path} calibrated with {settings}: " + "; ".join(problems))
     save_model(out_path, model, new)
-    return new
+    return new, val_mae
