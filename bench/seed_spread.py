@@ -344,7 +344,7 @@ def recalibration_source(root: str, seed: int, arch: str, params: dict, data: st
     except (OSError, ValueError):
         print(f"    --recalibrate-from: no run record at {run} (params.json, data.json): trained instead", flush=True)
         return None
-    if arch != "instances" or psd_config.network_recipe(theirs) != psd_config.network_recipe(params):
+    if psd_config.network_recipe(theirs) != psd_config.network_recipe(params):
         print(f"    --recalibrate-from: {run} trained another network: trained instead", flush=True)
         return None
     if their_data != data:
@@ -363,6 +363,7 @@ def recalibrate_run(source: Path, params: dict, results: Path, run: Path) -> Non
 
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.INFO, format="    %(message)s", stream=sys.stdout)
+    from psdfactory.learn.fit import write_history
     from psdfactory.learn.instances.estimator import InstanceEstimator
     from psdfactory.learn.instances.training import InstanceSettings, recalibrate
 
@@ -372,11 +373,8 @@ def recalibrate_run(source: Path, params: dict, results: Path, run: Path) -> Non
     if history.is_file():  # the network's training curve, for the evaluation's plot, with this calibration's error
         rows = list(csv.DictReader(history.open(encoding="utf-8")))
         if rows:
-            rows[-1]["val_mae_mm"] = repr(val_mae)
-            with (run / "history.csv").open("w", encoding="utf-8", newline="") as f:
-                w = csv.DictWriter(f, fieldnames=list(rows[0]))
-                w.writeheader()
-                w.writerows(rows)
+            rows[-1]["val_mae_mm"] = val_mae
+            write_history(rows, run / "history.csv")
 
 
 SETTABLE = ("train.", "evaluate.")  # the recipe; a dataset setting would not match the scenes Snakemake makes
@@ -450,7 +448,7 @@ def main() -> None:
     ap.add_argument("--recalibrate-from", metavar="DIR",
                     help="a seed_spread folder of runs of the same network (e.g. results/seed_spread): a run that "
                     "differs from its run of the same seed only in train.instances' tta, sieve_method or readout "
-                    "takes that network and calibrates it again (a minute) instead of training it")
+                    "takes that network and calibrates it again (minutes) instead of training it")
     ap.add_argument("--write-config", metavar="FILE",
                     help="write the validated config (schema defaults filled in, --set applied) as JSON and stop: "
                     "--config FILE then runs it where Snakemake is not installed (a GPU node with the training "
@@ -514,13 +512,11 @@ def main() -> None:
             # the same recipe (equal but for settings that change the model's meta only: config.training_recipe) on
             # the same scenes and labels; a run without the record of its data (of before it) is not known to be
             try:
-                same = stamp.is_file() and (psd_config.training_recipe(json.loads(stamp.read_text(encoding="utf-8")))
-                                            == psd_config.training_recipe(params))
+                theirs = json.loads(stamp.read_text(encoding="utf-8")) if stamp.is_file() else None
                 same_data = data_stamp.is_file() and json.loads(data_stamp.read_text(encoding="utf-8")) == data
-                same_network = same_data and stamp.is_file() and (
-                    psd_config.network_recipe(json.loads(stamp.read_text(encoding="utf-8")))
-                    == psd_config.network_recipe(params))
-                same = same and same_data
+                same_network = (same_data and theirs is not None
+                                and psd_config.network_recipe(theirs) == psd_config.network_recipe(params))
+                same = same_network and psd_config.training_recipe(theirs) == psd_config.training_recipe(params)
             except (TypeError, ValueError):  # a stamp cut short (JSONDecodeError) or edited: not this recipe's
                 same = same_network = False
             if a.summarise_only:
