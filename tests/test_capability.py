@@ -143,3 +143,41 @@ def test_fp16_training_scales_the_loss_and_skips_a_step_whose_gradients_overflow
         for _ in range(40):
             optimise_step(model, opt, x, square, dev, "fp16", "train.lr", scaler)
     hook.remove()
+
+
+class _Clock:
+    """A fake perf_counter that only the benchmarked step advances."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        return self.now
+
+
+@pytest.mark.parametrize("step_s, expected_steps, expected_runs", [
+    (11.0, 1 + 3, 3),            # a step longer than `seconds`: one warm-up, then the measuring step + 2 more
+    (0.01, 2 + 1 + 5 * 100, 5),  # a fast one: two warm-up steps, one to measure it, 5 runs of 100 steps
+])
+def test_throughput_times_a_slow_step_fewer_times(monkeypatch, step_s, expected_steps, expected_runs):
+    from psdfactory.deploy import benchmark
+
+    clock, calls = _Clock(), []
+    monkeypatch.setattr(benchmark.time, "perf_counter", clock)
+
+    def step():
+        calls.append(1)
+        clock.now += step_s
+
+    r = benchmark.throughput(step, batch=16, seconds=1.0, repeats=5)
+    assert len(calls) == expected_steps and r["runs"] == expected_runs
+    assert r["images_per_s"] == pytest.approx(16 / step_s)  # the rate of the step, either way
+
+
+def test_throughput_never_times_more_runs_than_asked(monkeypatch):
+    from psdfactory.deploy import benchmark
+
+    clock = _Clock()
+    monkeypatch.setattr(benchmark.time, "perf_counter", clock)
+    r = benchmark.throughput(lambda: setattr(clock, "now", clock.now + 5.0), batch=1, seconds=1.0, repeats=1)
+    assert r["runs"] == 1 and r["images_per_s"] == pytest.approx(0.2)

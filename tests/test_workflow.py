@@ -45,7 +45,7 @@ TINY = {
         # (tests/plugins: declared in the psdfactory.estimators entry-point group, on PYTHONPATH)
         "architectures": ["resnet50", "inception_v3", "efficientnet_b0", "instances", "meancolour"],
         "input_size": {"resnet50": 32, "inception_v3": 75, "efficientnet_b0": 32, "instances": 32, "meancolour": 32},
-        "instances": {"readout": "footprints+size_map"},  # the default config's read-out
+        "instances": {"readout": "footprints+size_map", "tta": "d4"},  # the default config's read-out and views
     },
     "benchmark": {"batch_size": 2, "seconds": 0.05, "repeats": 1},
     "show": {"compare_backends": COMPARE},
