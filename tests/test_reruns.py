@@ -6,8 +6,9 @@ files works on its own copy (`own_copy`), so the tests pass in any order and alo
 import copy
 
 import pytest
+import yaml
 
-from .workflow_helpers import own_copy, planned_jobs, planned_wildcards, snakemake, write_config
+from .workflow_helpers import REPO, own_copy, planned_jobs, planned_wildcards, snakemake, write_config
 
 pytestmark = pytest.mark.workflow
 
@@ -45,6 +46,14 @@ def dry(work, cfg, target="scenes"):
 def test_nothing_changed_nothing_to_do(built):
     jobs, r = dry(*built)
     assert not jobs and "Nothing to be done" in r.stdout + r.stderr
+
+
+def test_every_run_reads_the_workflow_profile_and_schedules_greedily(built):
+    # profiles/default (beside the Snakefile) holds the workflow's command-line defaults
+    prof = yaml.safe_load((REPO / "profiles" / "default" / "config.yaml").read_text(encoding="utf-8"))
+    assert prof["scheduler"] == "greedy"
+    _, r = dry(*built)
+    assert f"Using workflow specific profile {REPO / 'profiles' / 'default'}" in r.stdout + r.stderr
 
 
 def test_more_scenes_only_new_scenes_and_affected_shards(built):
