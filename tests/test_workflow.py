@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
+import yaml
 
 from psdfactory.scene.render.cycles import DEFAULT_PYTHON
 
@@ -20,6 +21,8 @@ COMPARE = 2 if HAS_BLENDER else 0
 
 pytestmark = pytest.mark.workflow
 PLUGINS = Path(__file__).parent / "plugins"
+# the default config's instance read-out and views, as `make demo` trains them
+DEFAULT_INSTANCES = yaml.safe_load((REPO / "config" / "config.yaml").read_text(encoding="utf-8"))["train"]["instances"]
 
 TINY = {
     "seed": 7,  # gives the 5 train scenes 2 train / 2 val / 1 test
@@ -45,7 +48,7 @@ TINY = {
         # (tests/plugins: declared in the psdfactory.estimators entry-point group, on PYTHONPATH)
         "architectures": ["resnet50", "inception_v3", "efficientnet_b0", "instances", "meancolour"],
         "input_size": {"resnet50": 32, "inception_v3": 75, "efficientnet_b0": 32, "instances": 32, "meancolour": 32},
-        "instances": {"readout": "footprints+size_map", "tta": "d4"},  # the default config's read-out and views
+        "instances": {k: DEFAULT_INSTANCES[k] for k in ("readout", "tta")},
     },
     "benchmark": {"batch_size": 2, "seconds": 0.05, "repeats": 1},
     "show": {"compare_backends": COMPARE},
