@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
-import yaml
 
+from psdfactory.config import load_config
 from psdfactory.scene.render.cycles import DEFAULT_PYTHON
 
 from .test_photo_sets import make_photo_set, photo_spec
@@ -22,7 +22,7 @@ COMPARE = 2 if HAS_BLENDER else 0
 pytestmark = pytest.mark.workflow
 PLUGINS = Path(__file__).parent / "plugins"
 # the default config's instance read-out and views, as `make demo` trains them
-DEFAULT_INSTANCES = yaml.safe_load((REPO / "config" / "config.yaml").read_text(encoding="utf-8"))["train"]["instances"]
+DEFAULT_INSTANCES = load_config(REPO / "config" / "config.yaml")["train"]["instances"]
 
 TINY = {
     "seed": 7,  # gives the 5 train scenes 2 train / 2 val / 1 test
