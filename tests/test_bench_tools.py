@@ -317,3 +317,21 @@ def test_recalibrate_from_takes_a_run_of_the_same_network_only(tmp_path, capsys)
     (run / "params.json").write_text(json.dumps({**mine, "settings": {**mine["settings"], "lr": 0.01}}))
     assert source(str(tmp_path), 7, "instances", mine, "abc") is None
     assert "trained another network" in capsys.readouterr().out
+
+
+def test_calibration_basis_reads_labels_and_scores_a_reading_by_its_leave_one_out_error(tmp_path):
+    """calibration_basis.py: a scene's labels in a definition and weighting, and the leave-one-out error of a
+    reading exactly affine in the references (0) against one that is noise (far from 0)."""
+    cb = bench_module("calibration_basis")
+    (tmp_path / "labels.json").write_text(json.dumps({"d10_b_axis_mm": 1.0, "d50_b_axis_mm": 2.0, "d90_b_axis_mm": 3.0,
+                                                      "d10_sieve_v_mm": 4.0, "d50_sieve_v_mm": 5.0,
+                                                      "d90_sieve_v_mm": 6.0}))
+    assert cb.labels_of(tmp_path, "b-axis", "number").tolist() == [1.0, 2.0, 3.0]
+    assert cb.labels_of(tmp_path, "sieve", "volume").tolist() == [4.0, 5.0, 6.0]
+    rng = np.random.default_rng(0)
+    d50 = rng.uniform(2, 20, 12)
+    ref = np.stack([0.4 * d50, d50, 2 * d50], axis=1)
+    assert np.allclose(cb.loo_mape(0.5 * ref + 1, ref), 0, atol=1e-9)
+    assert np.allclose(cb.subset_mape(0.5 * ref + 1, ref, 5, 20, 0), 0, atol=1e-9)
+    noise = np.sort(rng.uniform(1, 30, (12, 3)), axis=1)
+    assert (cb.loo_mape(noise, ref) > 10).all()

@@ -173,6 +173,53 @@ def test_the_hook_applies_only_in_the_calibrations_definition_and_refuses_a_far_
         cal.apply_calibration(meta, sieve, np.array([0.01, 0.02, 0.03]) - 5)
 
 
+def test_the_basis_is_the_references_reading_else_the_grains_in_their_weighting_else_the_models_own():
+    grains = {("sieve", "number"), *((d, w) for d in ("feret-min", "ecd") for w in ("number", "area", "volume"))}
+    finder = (lambda d, w: (d, w) in grains), (lambda d: "number")
+    cnn = (lambda d, w: (d, w) == ("sieve", "number")), (lambda d: "number")
+
+    def basis(wanted, model):
+        return cal.basis_for(dict(zip(("size_definition", "weighting"), wanted, strict=True)), *model)
+
+    assert basis(("sieve", "number"), finder) == {"size_definition": "sieve", "weighting": "number"}
+    assert basis(("sieve", "volume"), finder) == {"size_definition": "feret-min", "weighting": "volume"}
+    assert basis(("b-axis", "area"), finder) == {"size_definition": "feret-min", "weighting": "area"}
+    assert basis(("esd", "volume"), finder) == {"size_definition": "ecd", "weighting": "volume"}
+    assert basis(("ecd", "volume"), finder) == {"size_definition": "ecd", "weighting": "volume"}
+    assert basis(("sieve", "volume"), cnn) == {"size_definition": "sieve", "weighting": "number"}  # maps weightings
+
+
+def test_a_block_records_its_basis_and_the_hook_corrects_that_reading():
+    true = references(5, seed=8)
+    names = [f"s{i}.png" for i in range(5)]
+    grains = {"size_definition": "feret-min", "weighting": "volume"}
+    block = cal.calibration_block(names, A * true + B, true, "sieve", "volume", None, "2025-01-01T00:00:00+00:00",
+                                  "0.1.0", basis=grains)
+    assert block["basis"] == grains and cal.calibration_problems(block) == []
+    same = cal.calibration_block(names, A * true + B, true, "sieve", "volume", None, "2025-01-01T00:00:00+00:00",
+                                 "0.1.0", basis={"size_definition": "sieve", "weighting": "volume"})
+    assert "basis" not in same  # a block without one corrects the reading it gives
+    assert cal.basis_of(same) == {"size_definition": "sieve", "weighting": "volume"}
+    for bad in ({"size_definition": "weight", "weighting": "volume"}, {"size_definition": "ecd"}, "ecd"):
+        problems = cal.calibration_problems({**block, "basis": bad})
+        assert problems and "calibration.basis" in problems[0]
+    meta, sieve_v = {"calibration": block}, {"size_definition": "sieve", "weighting": "volume"}
+    assert cal.source_reading(meta, sieve_v) == grains and cal.source_reading({}, sieve_v) == sieve_v
+    with pytest.raises(PsdError, match="calibrated for the sieve size, volume-weighted"):
+        cal.source_reading(meta, {"size_definition": "sieve", "weighting": "number"})
+    note = cal.calibration_note(meta, sieve_v)
+    assert "sieve size, volume-weighted, corrected from its feret-min reading, volume-weighted" in note
+    # a calibrated model reads in its calibration's definition and weighting unless told otherwise
+    from psdfactory.learn.estimator import Estimator, reading_of
+
+    model = {"arch": "x", "size_definition": "sieve", "weighting": "number"}
+    assert reading_of(Estimator, model, None) == {"size_definition": "sieve", "weighting": "number"}
+    assert reading_of(Estimator, {**model, "calibration": block}, None) == sieve_v
+    assert reading_of(Estimator, {**model, "calibration": block}, "sieve", "volume") == sieve_v
+    with pytest.raises(PsdError, match="--weighting volume of sieve"):
+        reading_of(Estimator, model, "sieve", "volume")  # uncalibrated, it reads number-weighted sieve sizes only
+
+
 # ---- the command's inputs ------------------------------------------------------------------
 
 
@@ -332,6 +379,18 @@ def test_an_affine_calibration_below_ten_and_the_commands_refusals(model, plugin
     raw_d = np.array([[r["d10_mm"], r["d50_mm"], r["d90_mm"]] for r in raw])
     np.testing.assert_allclose([[r["d10_mm"], r["d50_mm"], r["d90_mm"]] for r in got],
                                cal.apply(block["params"], raw_d), rtol=1e-6)
+
+    # references of another weighting than the model reads (a sieve analysis counts mass): its reading corrected to
+    # them, the calibrated model's d-values labelled as the references are
+    vol = calibrate(model_pt, ref, images, tmp_path / "volume.pt", mm_per_px=None, weighting="volume")
+    assert (vol["weighting"], vol["basis"]) == ("volume", {"size_definition": block["size_definition"],
+                                                          "weighting": "number"})
+    np.testing.assert_allclose(vol["params"]["slope"], block["params"]["slope"])  # the same readings and references
+    got_v = predict_files(tmp_path / "volume.pt", images)
+    assert {(r["size_definition"], r["weighting"]) for r in got_v} == {(block["size_definition"], "volume")}
+    np.testing.assert_allclose([r["d50_mm"] for r in got_v], [r["d50_mm"] for r in got], rtol=1e-6)
+    with pytest.raises(PsdError, match="calibrated for the .* size, volume-weighted"):
+        predict_files(tmp_path / "volume.pt", images, weighting="number")
 
     capsys.readouterr()
 

@@ -693,6 +693,43 @@ def test_predict_reads_every_size_definition(tiny, tmp_path, few_grains_read):
                           "ecd", "number", str(img))
 
 
+def test_a_grain_finder_calibrated_to_mass_weighted_references_corrects_its_grains_measured_by_volume(
+        tiny, tmp_path, monkeypatch, few_grains_read):
+    """calibrate --weighting volume (a sieve analysis): a model that reads its solid definitions number-weighted only
+    takes the grains it found, measured by volume (min Feret width; ecd for esd), and predict with the calibrated
+    model corrects that reading, labelled as the references are."""
+    from types import SimpleNamespace
+
+    from psdfactory.deploy.calibrate import references_reading
+    from psdfactory.deploy.predict import predict_files
+    from psdfactory.learn import calibration as cal
+    from psdfactory.learn.runtime import write_torch
+
+    root, model_path, _ = tiny
+    ckpt = torch.load(model_path, map_location="cpu", weights_only=True)
+    est = SimpleNamespace(meta=ckpt["meta"], definitions=InstanceEstimator.definitions,
+                          weightings=InstanceEstimator.weightings)
+    for asked, want in [(("sieve", None), ("sieve", "number")), (("sieve", "volume"), ("feret-min", "volume")),
+                        (("esd", "area"), ("ecd", "area")), (("ecd", "volume"), ("ecd", "volume"))]:
+        what, basis = references_reading(est, *asked)
+        assert (what["size_definition"], what["weighting"]) == (asked[0], asked[1] or "number")
+        assert (basis["size_definition"], basis["weighting"]) == want, asked
+
+    readings = {("feret-min", "volume"): np.array([2.0, 4.0, 8.0]), ("sieve", "number"): np.array([1.0, 1.5, 2.0])}
+    monkeypatch.setattr(InstanceEstimator, "in_definition", lambda self, found, d, w, where: readings[(d, w)])
+    refs = np.array([[3.0, 5.0, 9.0], [4.0, 6.0, 10.0], [6.0, 9.0, 15.0]])
+    block = cal.calibration_block(["a", "b", "c"], refs / 2 - 0.5, refs, "sieve", "volume", None,
+                                  "2025-01-01T00:00:00+00:00", "0.1.0",
+                                  basis={"size_definition": "feret-min", "weighting": "volume"})
+    write_torch(tmp_path / "cal.pt", {**ckpt, "meta": {**ckpt["meta"], "calibration": block}})
+    img = root / "tiny" / "scenes" / "tiny-000000" / "image.png"
+    row = predict_files(tmp_path / "cal.pt", [img])[0]
+    assert row["error"] == "" and (row["size_definition"], row["weighting"]) == ("sieve", "volume")
+    np.testing.assert_allclose([row["d10_mm"], row["d50_mm"], row["d90_mm"]], 2 * (readings[("feret-min", "volume")]
+                                                                                   + 0.5), rtol=1e-9)
+    assert predict_files(model_path, [img])[0]["d50_mm"] == pytest.approx(1.5)  # uncalibrated: its own reading
+
+
 def test_evaluate_writes_segmentation_and_size_figures(tiny, tmp_path):
     from psdfactory.learn.evaluate import evaluate
 

@@ -297,7 +297,8 @@ def cmd_calibrate(a: argparse.Namespace) -> None:
 
     pick_device(a.device)
     block = calibrate(Path(a.model), Path(a.reference), a.images, Path(a.out), a.mm_per_px,
-                      size_definition=a.size_definition, device=a.device, auto_scale=a.auto_scale)
+                      size_definition=a.size_definition, device=a.device, auto_scale=a.auto_scale,
+                      weighting=a.weighting)
     print("\n".join(table_lines(block)), flush=True)
 
 
@@ -623,6 +624,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size-definition", choices=SIZE_DEFINITIONS, metavar="NAME",
                    help="what the references' d10/d50/d90 are of: " + ", ".join(SIZE_DEFINITIONS) + " (default: "
                    "the definition the model was trained on); the calibrated model is corrected in it only")
+    p.add_argument("--weighting", choices=GRAIN_WEIGHTINGS, metavar="NAME",
+                   help="what the references' percentiles count: " + ", ".join(GRAIN_WEIGHTINGS) + " (a sieve "
+                   "analysis counts mass: volume; a Wolman grid count: area; default: the model's weighting of "
+                   "that definition). Where the model does not read it, an instance model's correction takes its "
+                   "grains measured in that weighting (min Feret width; ecd for esd), a CNN's its own reading")
     p.add_argument("--device", default="cpu", metavar="DEVICE",
                    help="where the model runs: cpu, auto (cuda when there is one), cuda, cuda:N or mps")
     _auto_scale_arg(p, " Calibrate as you will predict: the calibration records which")

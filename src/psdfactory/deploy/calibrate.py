@@ -17,7 +17,7 @@ import numpy as np
 from .. import PsdError, __version__
 from ..io import same_file
 from ..learn import calibration as cal
-from ..psd import NAMES, TARGETS
+from ..psd import GRAIN_WEIGHTINGS, NAMES, TARGETS
 from .predict import describe_model, image_files, load_predictor, predict_one, reading
 
 logger = logging.getLogger(__name__)
@@ -139,12 +139,32 @@ def check_out(out: Path, model: Path, reference: Path, inputs: list[str]) -> Non
         raise PsdError(f"--out {out}: must end in .pt (the calibrated model file)")
 
 
+def references_reading(est, size_definition: str | None, weighting: str | None) -> tuple[dict, dict]:
+    """(what the references are of, the model's reading the correction takes: `cal.basis_for`). The
+    references' definition must be one the model reads (default: its own), their weighting one of
+    `psd.GRAIN_WEIGHTINGS` (default: the model's weighting of that definition)."""
+    meta = est.meta
+    wanted = reading(meta, size_definition)  # the definition, refused where the model cannot read it
+    if weighting is not None:
+        if weighting not in GRAIN_WEIGHTINGS:
+            raise PsdError(f"--weighting {weighting!r}: not a weighting; one of {', '.join(GRAIN_WEIGHTINGS)}")
+        wanted = {**wanted, "weighting": weighting}
+
+    def can_read(definition: str, w: str) -> bool:
+        return definition in est.definitions(meta) and w in est.weightings(meta, definition)
+
+    basis = cal.basis_for(wanted, can_read, lambda d: reading(meta, d)["weighting"])
+    return wanted, basis
+
+
 def calibrate(model_path: Path, reference: Path, inputs: list[str], out: Path, mm_per_px: float | None = None,
-              size_definition: str | None = None, device: str = "cpu", auto_scale: bool | None = None) -> dict:
+              size_definition: str | None = None, device: str = "cpu", auto_scale: bool | None = None,
+              weighting: str | None = None) -> dict:
     """Predict the reference images with the model (uncalibrated: a calibrated model's own
     correction is left out and replaced), fit the correction (`learn.calibration`) and write the
-    model with it in its meta to `out` (the same weights). `auto_scale`: read them as predict
-    --auto-scale / --no-auto-scale does (None: the model's default); the block records which.
+    model with it in its meta to `out` (the same weights). `size_definition`, `weighting`: what the
+    references are of (`references_reading`). `auto_scale`: read them as predict --auto-scale /
+    --no-auto-scale does (None: the model's default); the block records which.
     → the calibration block."""
     from ..learn.runtime import load_checkpoint, meta_problems, write_torch
 
@@ -160,12 +180,16 @@ def calibrate(model_path: Path, reference: Path, inputs: list[str], out: Path, m
     if old is not None:
         logger.warning(f"{model_path} is calibrated already ({old['n']} references, {old['date']}): the new "
                        "calibration replaces that one, fitted on the model's uncalibrated readings")
-    what = reading(est.meta, size_definition)
+    what, basis = references_reading(est, size_definition, weighting)
     for line in describe_model(est.meta, model_path, mm_per_px):
         logger.info(line)
-    logger.info(f"predicting {len(files)} reference images: d10/d50/d90 of the {what['size_definition']} size, "
-                f"{what['weighting']}-weighted")
-    rows = [predict_one(est, f, mm_per_px, what=what) for f in files]
+    logger.info(f"predicting {len(files)} reference images: d10/d50/d90 of the {basis['size_definition']} size, "
+                f"{basis['weighting']}-weighted")
+    if basis != what:
+        logger.info(f"the references are of the {what['size_definition']} size, {what['weighting']}-weighted, which "
+                    f"this {est.meta['arch']} model does not read: the correction maps its {basis['size_definition']} "
+                    f"reading, {basis['weighting']}-weighted, to them (docs/calibration.md)")
+    rows = [predict_one(est, f, mm_per_px, what=basis) for f in files]
     failed = [r["error"] for r in rows if r["error"]]
     if failed:
         raise PsdError(f"{len(failed)} of {len(rows)} reference images failed to predict, so the model cannot be "
@@ -173,7 +197,7 @@ def calibrate(model_path: Path, reference: Path, inputs: list[str], out: Path, m
     predicted = np.array([[r[t] for t in TARGETS] for r in rows], dtype=float)
     date = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
     block = cal.calibration_block(names, predicted, values, what["size_definition"], what["weighting"], mm_per_px,
-                                  date, __version__)
+                                  date, __version__, basis=basis)
     for ref, f in zip(block["references"], files, strict=True):
         ref["file"] = str(f)
     if est.finds_grains and mm_per_px is not None:  # how its photos were read (without a scale: at the model's
@@ -201,8 +225,11 @@ def table_lines(block: dict) -> list[str]:
     def pct(v: float) -> str:
         return f"{v:>8.1f}" if math.isfinite(v) else f"{'-':>8}"
 
+    basis = cal.basis_of(block)
+    source = ("" if "basis" not in block else
+              f" (from its {basis['size_definition']} reading, {basis['weighting']}-weighted)")
     lines = [f"calibration on {block['n']} references: {block['method']} correction per target, "
-             f"{block['size_definition']} size, {block['weighting']}-weighted",
+             f"{block['size_definition']} size, {block['weighting']}-weighted{source}",
              f"{'':<8}{'uncalibrated':>20}   {'calibrated (leave-one-out)':>26}",
              f"{'target':<8}{'MAPE %':>10}{'MAE mm':>10}   {'MAPE %':>16}{'MAE mm':>10}"]
     for name in NAMES:

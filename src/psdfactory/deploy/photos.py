@@ -42,7 +42,7 @@ import numpy as np
 
 from .. import PsdError
 from ..io import atomic_path, open_image, read_photo, write_json
-from ..learn.calibration import apply_calibration
+from ..learn.calibration import apply_calibration, source_reading
 from ..learn.estimator import Estimator, Reading, reading_of
 from ..photoset import Photo, PhotoSet
 from ..psd import NAMES, weighted_percentiles
@@ -325,7 +325,10 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         image, size_hw = read_photo(photo.path, need=lambda h, w, p=photo: target_size(h, w, meta, p.mm_per_px))
         found, network_hw = read_at_scale(est, image, size_hw, photo.mm_per_px, DEFAULT_TILE_PX, str(photo.path))
         # its own reading as predict gives it (a calibrated model's correction applied)
-        reading = Reading(apply_calibration(meta, own, found.d_mm), grains=found.grains)
+        source = source_reading(meta, own)
+        reading = Reading(apply_calibration(meta, own, est.in_definition(found, source["size_definition"],
+                                                                         source["weighting"], str(photo.path))),
+                          grains=found.grains)
         where = f"{photos.name}/{photo.name}"
         # a reading that is no size distribution, or rests on no or few whole grains: scored all the same (a photo
         # with no grain found scores F1 0), said in the log and beside its figures (metrics, photos.csv, the report)

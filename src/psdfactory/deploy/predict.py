@@ -20,7 +20,7 @@ from torch.nn import functional as F
 from .. import PsdError
 from ..config import AUTO_SCALE_MARGIN, LEGACY_AUTO_SCALE_PROBE, PREDICT_TILE_PX
 from ..io import read_photo, same_file, write_json
-from ..learn.calibration import apply_calibration, calibration_note
+from ..learn.calibration import apply_calibration, calibration_note, source_reading
 from ..learn.data import to_input
 from ..learn.estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS, Estimator, reading_of
 from ..photoset import IMAGE_SUFFIXES
@@ -504,10 +504,11 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
         error, few = grain_count_problem(str(path), found.grains)
         if error:
             raise PsdError(error)
-        d = est.in_definition(found, what["size_definition"], what["weighting"], str(path))
+        source = source_reading(meta, what)  # a calibrated model's basis, corrected below
+        d = est.in_definition(found, source["size_definition"], source["weighting"], str(path))
         outside = getattr(found.grains, "readout_outside", ())
         extrapolates = None
-        if outside and what["size_definition"] in SOLID_DEFINITIONS:
+        if outside and source["size_definition"] in SOLID_DEFINITIONS:
             held = (", held to the correction of the visible grains' sizes it learnt"
                     if getattr(est, "readout_held", False) else "")
             extrapolates = (f"{path}: its grains lie outside what {meta['arch']}'s read-out was fitted on "

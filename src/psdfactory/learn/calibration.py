@@ -12,6 +12,12 @@ The correction is fitted per target (d10, d50, d90 independently), from predicte
   extrapolated outside them along the chord from its first knot to its last (a non-negative slope:
   the map stays monotone and continuous).
 
+The correction takes one of the model's readings of each image, its *basis*: the references' own
+size definition and weighting where the model reads them, else (`basis_for`) a grain finder's
+grains measured in the references' weighting (a mass-weighted sieve analysis: the found grains'
+volume-weighted min Feret width), else the model's own weighting of the references' definition. The
+corrected d-values are of the references' definition and weighting either way.
+
 The corrected d-values are sorted, so d10 <= d50 <= d90 holds after correction too. The
 leave-one-out error (each reference predicted by the correction fitted on the others) is the
 honest estimate of the calibrated error; the in-fit error flatters.
@@ -28,7 +34,7 @@ import math
 import numpy as np
 
 from .. import PsdError
-from ..psd import NAMES, SIZE_DEFINITIONS, TARGETS, WEIGHTINGS
+from ..psd import GRAIN_WEIGHTINGS, NAMES, SIZE_DEFINITIONS, TARGETS, WEIGHTINGS
 
 MIN_REFERENCES = 3
 ISOTONIC_FROM = 10  # references from which the correction is isotonic (below: affine)
@@ -36,9 +42,36 @@ METHODS = ("affine", "isotonic")
 MAX_REFERENCES = 100_000  # what a meta's block may hold (a sanity bound for validation)
 
 
+# the grains' measured size a grain finder's calibration takes where the references' weighting (area, volume) is
+# not one the model reads their solid definition in: the narrowest width of a grain seen from above is the size it
+# passes a sieve by and its b-axis; its equivalent-circle diameter stands for the sphere's (docs/calibration.md)
+FOOTPRINT_FOR = {"sieve": "feret-min", "b-axis": "feret-min", "c-axis": "feret-min", "esd": "ecd"}
+
+
 def method_for(n: int) -> str:
     """The correction fitted on `n` references."""
     return "isotonic" if n >= ISOTONIC_FROM else "affine"
+
+
+def basis_for(wanted: dict, can_read, own_weighting) -> dict:
+    """The model's reading a calibration to references of `wanted` ({"size_definition",
+    "weighting"}) corrects: `wanted` itself where the model reads it (`can_read(definition,
+    weighting)`), else the footprint size of `FOOTPRINT_FOR` in the wanted weighting where it reads
+    that (a grain finder), else the wanted definition in the weighting the model reads it in
+    (`own_weighting(definition)`): the correction then maps one weighting to the other."""
+    definition, weighting = wanted["size_definition"], wanted["weighting"]
+    if can_read(definition, weighting):
+        return dict(wanted)
+    footprint = FOOTPRINT_FOR.get(definition)
+    if footprint is not None and can_read(footprint, weighting):
+        return {"size_definition": footprint, "weighting": weighting}
+    return {"size_definition": definition, "weighting": own_weighting(definition)}
+
+
+def basis_of(block: dict) -> dict:
+    """The reading a calibration block's correction takes (`basis_for`); a block without one
+    corrects the reading it gives."""
+    return dict(block.get("basis") or {"size_definition": block["size_definition"], "weighting": block["weighting"]})
 
 
 # ---- references -----------------------------------------------------------------------------
@@ -173,10 +206,12 @@ def errors(estimated: np.ndarray, reference: np.ndarray) -> dict:
 
 
 def calibration_block(names: list[str], predicted: np.ndarray, reference: np.ndarray, size_definition: str,
-                      weighting: str, mm_per_px: float | None, date: str, version: str) -> dict:
+                      weighting: str, mm_per_px: float | None, date: str, version: str,
+                      basis: dict | None = None) -> dict:
     """What a calibrated model's meta holds under "calibration": the references (image, values, the
     model's uncalibrated prediction), the fitted correction, its leave-one-out, in-fit and the
-    uncalibrated errors on the references, what the d-values are of, and when and by what it was made."""
+    uncalibrated errors on the references, what the d-values are of, the reading the correction takes
+    (`basis`, recorded where it is not that; `predicted` is of it), and when and by what it was made."""
     p = np.asarray(predicted, dtype=float).reshape(-1, len(TARGETS))
     r = np.asarray(reference, dtype=float).reshape(-1, len(TARGETS))
     check_references(list(names), r)
@@ -184,10 +219,13 @@ def calibration_block(names: list[str], predicted: np.ndarray, reference: np.nda
     params = fit(p, r, method)
     refs = [{"image": str(n), **{t: float(v) for t, v in zip(TARGETS, ref, strict=True)},
              "predicted": [float(v) for v in pred]} for n, ref, pred in zip(names, r, p, strict=True)]
-    return {"method": method, "n": len(p), "targets": list(TARGETS), "references": refs, "params": params,
-            "loo": errors(leave_one_out(p, r, method), r), "fit": errors(apply(params, p), r),
-            "uncalibrated": errors(p, r), "size_definition": size_definition, "weighting": weighting,
-            "mm_per_px": None if mm_per_px is None else float(mm_per_px), "date": date, "version": version}
+    block = {"method": method, "n": len(p), "targets": list(TARGETS), "references": refs, "params": params,
+             "loo": errors(leave_one_out(p, r, method), r), "fit": errors(apply(params, p), r),
+             "uncalibrated": errors(p, r), "size_definition": size_definition, "weighting": weighting,
+             "mm_per_px": None if mm_per_px is None else float(mm_per_px), "date": date, "version": version}
+    if basis is not None and (basis["size_definition"], basis["weighting"]) != (size_definition, weighting):
+        block["basis"] = {"size_definition": basis["size_definition"], "weighting": basis["weighting"]}
+    return block
 
 
 def calibration_warnings(block: dict) -> list[str]:
@@ -277,6 +315,11 @@ def calibration_problems(block: object) -> list[str]:
                              "calibration.references")
         except PsdError as e:
             problems.append(str(e))
+    basis = block.get("basis")
+    if basis is not None and not (isinstance(basis, dict) and basis.get("size_definition") in SIZE_DEFINITIONS
+                                  and basis.get("weighting") in GRAIN_WEIGHTINGS):
+        problems.append(f"calibration.basis must give a size_definition ({', '.join(SIZE_DEFINITIONS)}) and a "
+                        f"weighting ({', '.join(GRAIN_WEIGHTINGS)})")
     if not isinstance(block.get("auto_scale", False), bool):
         problems.append("calibration.auto_scale must be true or false (how its photos were read)")
     bad = [k for k in ("loo", "uncalibrated") if not _errors_ok(block.get(k))]
@@ -301,8 +344,11 @@ def calibration_note(meta: dict, what: dict) -> str | None:
     loo = ", ".join(f"{n} {block['loo'][n]['mape_pct']:.1f} %" for n in NAMES)
     raw = ", ".join(f"{n} {block['uncalibrated'][n]['mape_pct']:.1f} %" for n in NAMES)
     scale = "" if block.get("mm_per_px") is None else f" at {block['mm_per_px']:g} mm/px"
+    basis = basis_of(block)
+    source = ("" if "basis" not in block else
+              f", corrected from its {basis['size_definition']} reading, {basis['weighting']}-weighted")
     return (f"calibrated on {block['n']} references ({block['method']}, {block['size_definition']} size, "
-            f"{block['weighting']}-weighted{scale}, {block['date']}): LOO error (mean abs %) {loo}; "
+            f"{block['weighting']}-weighted{source}{scale}, {block['date']}): LOO error (mean abs %) {loo}; "
             f"uncalibrated {raw}")
 
 
@@ -314,11 +360,21 @@ def check_reading(block: dict, what: dict) -> None:
                        f"{block['size_definition']}), or calibrate the model for {what['size_definition']}")
 
 
+def source_reading(meta: dict, what: dict) -> dict:
+    """The reading to take of an image for the d-values `what` asks: for a calibrated model the
+    calibration's basis (`basis_of`; a reading other than its own refused), else `what` itself."""
+    block = meta.get("calibration")
+    if block is None:
+        return dict(what)
+    check_reading(block, what)
+    return basis_of(block)
+
+
 def apply_calibration(meta: dict, what: dict, d: np.ndarray) -> np.ndarray:
-    """A reading's d10/d50/d90 (`d`, mm) corrected by the model's calibration (`meta["calibration"]`);
-    as they are for a model without one. A reading of another size definition or weighting than
-    the calibration's is refused, and so is a corrected size that is not positive (the reading lies
-    far below the references the correction was fitted on)."""
+    """A reading's d10/d50/d90 (`d`, mm: the reading `source_reading` names) corrected by the model's
+    calibration (`meta["calibration"]`); as they are for a model without one. A reading of another
+    size definition or weighting than the calibration's is refused, and so is a corrected size that
+    is not positive (the reading lies far below the references the correction was fitted on)."""
     block = meta.get("calibration")
     if block is None:
         return d

@@ -198,7 +198,13 @@ def model_definition(meta: dict) -> str:
 def reading_of(est_cls: type[Estimator], meta: dict, requested: str | None, weighting: str | None = None) -> dict:
     """What a model's d-values will be of: {"size_definition", "weighting"} — its own definition
     and weighting, or those asked for when its estimator can read them (`Estimator.definitions`,
-    `Estimator.weightings`); anything else is refused in one line naming what it can read."""
+    `Estimator.weightings`); anything else is refused in one line naming what it can read. A
+    calibrated model gives the d-values its calibration was fitted to by default (`psdfactory
+    calibrate`: `learn.calibration.source_reading` says which reading they are corrected from)."""
+    block = meta.get("calibration")
+    if isinstance(block, dict) and requested in (None, block.get("size_definition")) and (
+            weighting in (None, block.get("weighting"))):
+        return {"size_definition": block["size_definition"], "weighting": block["weighting"]}
     definitions = est_cls.definitions(meta)
     own, own_weighting = model_definition(meta), meta.get("weighting", "number")
     definition = requested or own

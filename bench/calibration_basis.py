@@ -1,0 +1,123 @@
+#!/usr/bin/env python
+"""Which of a model's readings a calibration should correct: leave-one-out errors per reading.
+
+`psdfactory calibrate` fits, per target, a correction from one of the model's readings of each
+reference image to the reference's d10/d50/d90. An instance model has many readings of an image:
+its read-outs of the solid definitions (sieve, b-axis, ...) and the footprint definitions measured
+on the grains it found (feret-min, feret-max, ecd), each number-, area- or volume-weighted. This
+script reads every image once, takes each of those readings, and prints for each the Spearman rank
+correlation with the references and the leave-one-out error of the calibration fitted on it
+(mean |error| / reference, %), with all the references and with random subsets of a few (the
+affine fit a user with 5 sieve results gets: the median over draws of each subset's own
+leave-one-out error).
+
+References are synthetic scenes (folders with image.png and labels.json: the workflow's
+`results/<dataset>/scenes/*`, or bench/paper_look.py's), labelled in --label-definition and
+--label-weighting:
+
+    .venv/bin/python bench/calibration_basis.py --model results/models/instances/model.pt \
+        --scenes results/train_cycles/scenes --label-definition b-axis
+    .venv/bin/python bench/calibration_basis.py --model M --scenes /tmp/psd-paper-look/scenes \
+        --mm-per-px 0.3 --label-definition b-axis
+
+Synthetic scenes only: the development photos are for measuring, never for choosing (issue 24).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def labels_of(scene: Path, definition: str, weighting: str) -> np.ndarray:
+    """A scene's d10/d50/d90 (mm) in a size definition and weighting, from its labels.json."""
+    lab = json.loads((scene / "labels.json").read_text())
+    key = definition.replace("-", "_") + ("_v" if weighting == "volume" else "")
+    return np.array([lab[f"{n}_{key}_mm"] for n in ("d10", "d50", "d90")], dtype=float)
+
+
+def readings(model: Path, images: list[Path], mm_per_px: float | None) -> dict[tuple[str, str], np.ndarray]:
+    """Every reading the model gives of each image: {(definition, weighting): N x 3}."""
+    from psdfactory.deploy.predict import DEFAULT_TILE_PX, load_predictor, network_size, read_at_scale
+    from psdfactory.io import read_photo
+    from psdfactory.psd import SIZE_DEFINITIONS
+
+    est = load_predictor(model, "cpu")
+    kinds = [(d, w) for d in SIZE_DEFINITIONS if d in est.definitions(est.meta) for w in est.weightings(est.meta, d)]
+    out: dict[tuple[str, str], list[np.ndarray]] = {k: [] for k in kinds}
+    for i, path in enumerate(images, 1):
+        image, size_hw = read_photo(path, need=lambda h, w, p=path: network_size(p, h, w, est.meta, mm_per_px))
+        found, _ = read_at_scale(est, image, size_hw, mm_per_px, DEFAULT_TILE_PX, str(path))
+        for d, w in kinds:
+            out[(d, w)].append(np.asarray(est.in_definition(found, d, w, str(path)), dtype=float))
+        print(f"read {i}/{len(images)} images", file=sys.stderr, end="\r")
+    print(file=sys.stderr)
+    return {k: np.array(v) for k, v in out.items()}
+
+
+def loo_mape(p: np.ndarray, r: np.ndarray, method: str | None = None) -> np.ndarray:
+    """Leave-one-out mean |error| / reference (%) per target of the calibration fitted on `p`."""
+    from psdfactory.learn import calibration as cal
+
+    return 100 * np.mean(np.abs(cal.leave_one_out(p, r, method) - r) / r, axis=0)
+
+
+def subset_mape(p: np.ndarray, r: np.ndarray, k: int, draws: int, seed: int) -> np.ndarray:
+    """The median over `draws` random subsets of `k` references of each subset's own LOO error."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(draws):
+        idx = rng.choice(len(p), size=k, replace=False)
+        try:
+            out.append(loo_mape(p[idx], r[idx]))
+        except Exception:  # a subset whose readings are all alike: nothing to fit
+            continue
+    return np.median(out, axis=0) if out else np.full(3, np.nan)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", type=Path, required=True)
+    ap.add_argument("--scenes", type=Path, nargs="+", required=True, help="folders of scene folders")
+    ap.add_argument("--label-definition", default="b-axis")
+    ap.add_argument("--label-weighting", default="number", choices=("number", "volume"))
+    ap.add_argument("--mm-per-px", type=float, default=None)
+    ap.add_argument("--subset", type=int, default=5, help="references in the small subsets (0: none)")
+    ap.add_argument("--draws", type=int, default=200)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+
+    from scipy.stats import spearmanr
+
+    scenes = sorted(s.parent for d in args.scenes for s in d.glob("*/labels.json") if (s.parent / "image.png").exists())
+    if len(scenes) < 4:
+        ap.error(f"{len(scenes)} scenes with image.png and labels.json under {args.scenes}: at least 4 needed")
+    ref = np.array([labels_of(s, args.label_definition, args.label_weighting) for s in scenes])
+    reads = readings(args.model, [s / "image.png" for s in scenes], args.mm_per_px)
+    print(f"{len(scenes)} scenes; references: {args.label_definition}, {args.label_weighting}-weighted; "
+          f"model {args.model}")
+    head = f"{'reading':<22}{'rho d10/d50/d90':>18}{'uncal %':>20}{f'LOO all {len(scenes)} %':>20}"
+    head += f"{'LOO affine %':>20}" + (f"{f'LOO of {args.subset} %':>20}" if args.subset else "")
+    print(head)
+    for (d, w), p in reads.items():
+        rho = [spearmanr(p[:, k], ref[:, k])[0] for k in range(3)]
+        unc = 100 * np.mean(np.abs(p - ref) / ref, axis=0)
+        cells = [" ".join(f"{v:5.2f}" for v in rho), " / ".join(f"{v:4.1f}" for v in unc)]
+        scores = [(loo_mape, ()), (loo_mape, ("affine",))]
+        if args.subset:
+            scores.append((subset_mape, (args.subset, args.draws, args.seed)))
+        for fn, extra in scores:
+            try:
+                cells.append(" / ".join(f"{v:4.1f}" for v in fn(p, ref, *extra)))
+            except Exception as e:  # a reading that cannot be calibrated (all alike) says so
+                cells.append(f"({type(e).__name__})")
+        print(f"{d + ' ' + w:<22}{cells[0]:>18}" + "".join(f"{c:>20}" for c in cells[1:]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
