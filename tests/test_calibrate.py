@@ -391,6 +391,13 @@ def test_an_affine_calibration_below_ten_and_the_commands_refusals(model, plugin
     np.testing.assert_allclose([r["d50_mm"] for r in got_v], [r["d50_mm"] for r in got], rtol=1e-6)
     with pytest.raises(PsdError, match="calibrated for the .* size, volume-weighted"):
         predict_files(tmp_path / "volume.pt", images, weighting="number")
+    # a basis this model does not give (a block edited, or moved onto another model) is refused, not read as another
+    ckpt = load_checkpoint(tmp_path / "volume.pt")
+    ckpt["meta"]["calibration"]["basis"] = {"size_definition": "feret-min", "weighting": "volume"}
+    write_torch(tmp_path / "moved.pt", ckpt)
+    with pytest.raises(PsdError, match="corrects its feret-min reading, volume-weighted, which this meancolour model "
+                                       "does not give"):
+        predict_files(tmp_path / "moved.pt", images)
 
     capsys.readouterr()
 

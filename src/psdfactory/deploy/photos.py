@@ -48,6 +48,7 @@ from ..photoset import Photo, PhotoSet
 from ..psd import NAMES, weighted_percentiles
 from .predict import (
     DEFAULT_TILE_PX,
+    check_basis,
     grain_count_problem,
     load_predictor,
     network_scale,
@@ -309,6 +310,8 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         est.run = torch_runner(est.inference_module(), dev, prec)
     meta, arch = est.meta, est.meta["arch"]
     own = reading_of(type(est), meta, None)
+    if "calibration" in meta:
+        check_basis(est, source_reading(meta, own))
     psd_definition = photos.size_definition if est.finds_grains else own["size_definition"]
     scorer = PhotoScorer(est, photos)
     restored = PhotoScorer(est, photos, outlines_restored=True) if photos.outline_band_px != 0 else None

@@ -580,6 +580,7 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
                     "(its recipe's train.instances.auto_scale, as --auto-scale); --no-auto-scale reads every photo "
                     "at its own scale")
     if (note := calibration_note(meta, what)) is not None:  # refuses a reading the calibration is not of
+        check_basis(est, source_reading(meta, what))
         logger.info(note)
         fitted = meta["calibration"].get("auto_scale")
         if fitted is not None and est.finds_grains and fitted != est.auto_scale:
@@ -588,6 +589,16 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
                            f"a photo's scale the correction does not fit its reading; predict with "
                            f"{'--auto-scale' if fitted else '--no-auto-scale'}, as it was calibrated")
     return est, files, what
+
+
+def check_basis(est: Estimator, basis: dict) -> None:
+    """Refuse a calibration whose basis (the reading its correction takes) is not one this model
+    gives: a block edited by hand, or moved onto another model."""
+    definition, weighting = basis["size_definition"], basis["weighting"]
+    if definition not in est.definitions(est.meta) or weighting not in est.weightings(est.meta, definition):
+        raise PsdError(f"this model's calibration corrects its {definition} reading, {weighting}-weighted, which this "
+                       f"{est.meta['arch']} model does not give: the calibration block is not this model's; "
+                       "calibrate the model again (psdfactory calibrate)")
 
 
 def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None, device: str = "cpu",
