@@ -40,8 +40,14 @@ def labels_of(scene: Path, definition: str, weighting: str) -> np.ndarray:
     return np.array([lab[f"{n}_{key}_mm"] for n in ("d10", "d50", "d90")], dtype=float)
 
 
-def readings(model: Path, images: list[Path], mm_per_px: float | None) -> dict[tuple[str, str], np.ndarray]:
-    """Every reading the model gives of each image: {(definition, weighting): N x 3}."""
+def scene_scale(scene: Path) -> float:
+    """A scene's mm per pixel, from its render.json (the view jitters it where the config says so)."""
+    return float(json.loads((scene / "render.json").read_text())["mm_per_px"])
+
+
+def readings(model: Path, images: list[Path], mm_per_px: float | list[float] | None) -> dict[tuple[str, str], np.ndarray]:
+    """Every reading the model gives of each image (`mm_per_px`: one scale for all, one per image, or
+    None: the model's): {(definition, weighting): N x 3}."""
     from psdfactory.deploy.predict import DEFAULT_TILE_PX, load_predictor, network_size, read_at_scale
     from psdfactory.io import read_photo
     from psdfactory.psd import SIZE_DEFINITIONS
@@ -49,9 +55,10 @@ def readings(model: Path, images: list[Path], mm_per_px: float | None) -> dict[t
     est = load_predictor(model, "cpu")
     kinds = [(d, w) for d in SIZE_DEFINITIONS if d in est.definitions(est.meta) for w in est.weightings(est.meta, d)]
     out: dict[tuple[str, str], list[np.ndarray]] = {k: [] for k in kinds}
-    for i, path in enumerate(images, 1):
-        image, size_hw = read_photo(path, need=lambda h, w, p=path: network_size(p, h, w, est.meta, mm_per_px))
-        found, _ = read_at_scale(est, image, size_hw, mm_per_px, DEFAULT_TILE_PX, str(path))
+    scales = mm_per_px if isinstance(mm_per_px, list) else [mm_per_px] * len(images)
+    for i, (path, mm) in enumerate(zip(images, scales, strict=True), 1):
+        image, size_hw = read_photo(path, need=lambda h, w, p=path, mm=mm: network_size(p, h, w, est.meta, mm))
+        found, _ = read_at_scale(est, image, size_hw, mm, DEFAULT_TILE_PX, str(path))
         for d, w in kinds:
             out[(d, w)].append(np.asarray(est.in_definition(found, d, w, str(path)), dtype=float))
         print(f"read {i}/{len(images)} images", file=sys.stderr, end="\r")
@@ -85,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", type=Path, nargs="+", required=True, help="folders of scene folders")
     ap.add_argument("--label-definition", default="b-axis")
     ap.add_argument("--label-weighting", default="number", choices=("number", "volume"))
-    ap.add_argument("--mm-per-px", type=float, default=None)
+    ap.add_argument("--mm-per-px", default=None, help="the images' scale: a number, or 'scene' (each scene's own, "
+                    "from its render.json); default: the model's")
     ap.add_argument("--subset", type=int, default=5, help="references in the small subsets (0: none)")
     ap.add_argument("--draws", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0)
@@ -97,7 +105,9 @@ def main(argv: list[str] | None = None) -> int:
     if len(scenes) < 4:
         ap.error(f"{len(scenes)} scenes with image.png and labels.json under {args.scenes}: at least 4 needed")
     ref = np.array([labels_of(s, args.label_definition, args.label_weighting) for s in scenes])
-    reads = readings(args.model, [s / "image.png" for s in scenes], args.mm_per_px)
+    scale = ([scene_scale(s) for s in scenes] if args.mm_per_px == "scene"
+             else None if args.mm_per_px is None else float(args.mm_per_px))
+    reads = readings(args.model, [s / "image.png" for s in scenes], scale)
     print(f"{len(scenes)} scenes; references: {args.label_definition}, {args.label_weighting}-weighted; "
           f"model {args.model}")
     head = f"{'reading':<22}{'rho d10/d50/d90':>18}{'uncal %':>20}{f'LOO all {len(scenes)} %':>20}"
