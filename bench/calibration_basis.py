@@ -45,7 +45,8 @@ def scene_scale(scene: Path) -> float:
     return float(json.loads((scene / "render.json").read_text())["mm_per_px"])
 
 
-def readings(model: Path, images: list[Path], mm_per_px: float | list[float] | None) -> dict[tuple[str, str], np.ndarray]:
+def readings(model: Path, images: list[Path],
+             mm_per_px: float | list[float] | None) -> dict[tuple[str, str], np.ndarray]:
     """Every reading the model gives of each image (`mm_per_px`: one scale for all, one per image, or
     None: the model's): {(definition, weighting): N x 3}."""
     from psdfactory.deploy.predict import DEFAULT_TILE_PX, load_predictor, network_size, read_at_scale
