@@ -35,9 +35,10 @@ import numpy as np
 
 def labels_of(scene: Path, definition: str, weighting: str) -> np.ndarray:
     """A scene's d10/d50/d90 (mm) in a size definition and weighting, from its labels.json."""
+    from psdfactory.psd import definition_targets
+
     lab = json.loads((scene / "labels.json").read_text())
-    key = definition.replace("-", "_") + ("_v" if weighting == "volume" else "")
-    return np.array([lab[f"{n}_{key}_mm"] for n in ("d10", "d50", "d90")], dtype=float)
+    return np.array([lab[k] for k in definition_targets(definition, weighting)], dtype=float)
 
 
 def scene_scale(scene: Path) -> float:
@@ -54,6 +55,9 @@ def readings(model: Path, images: list[Path],
     from psdfactory.psd import SIZE_DEFINITIONS
 
     est = load_predictor(model, "cpu")
+    if "calibration" in est.meta:  # its readings before any correction: what a calibration would be fitted on
+        print(f"{model} is calibrated: its uncalibrated readings are compared", file=sys.stderr)
+        est.meta = {k: v for k, v in est.meta.items() if k != "calibration"}
     kinds = [(d, w) for d in SIZE_DEFINITIONS if d in est.definitions(est.meta) for w in est.weightings(est.meta, d)]
     out: dict[tuple[str, str], list[np.ndarray]] = {k: [] for k in kinds}
     scales = mm_per_px if isinstance(mm_per_px, list) else [mm_per_px] * len(images)
@@ -92,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--model", type=Path, required=True)
     ap.add_argument("--scenes", type=Path, nargs="+", required=True, help="folders of scene folders")
     ap.add_argument("--label-definition", default="b-axis")
-    ap.add_argument("--label-weighting", default="number", choices=("number", "volume"))
+    ap.add_argument("--label-weighting", default="number", help="number or volume (psd.WEIGHTINGS)")
     ap.add_argument("--mm-per-px", default=None, help="the images' scale: a number, or 'scene' (each scene's own, "
                     "from its render.json); default: the model's")
     ap.add_argument("--subset", type=int, default=5, help="references in the small subsets (0: none)")

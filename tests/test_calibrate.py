@@ -16,6 +16,7 @@ import pytest
 
 from psdfactory import PsdError
 from psdfactory.learn import calibration as cal
+from psdfactory.psd import FOOTPRINT_DEFINITIONS, SOLID_DEFINITIONS
 
 from .test_training import dataset, param_slice  # noqa: F401  (the fixture and the parameter slice)
 
@@ -200,15 +201,22 @@ def test_a_block_records_its_basis_and_the_hook_corrects_that_reading():
                                  "0.1.0", basis={"size_definition": "sieve", "weighting": "volume"})
     assert "basis" not in same  # a block without one corrects the reading it gives
     assert cal.basis_of(same) == {"size_definition": "sieve", "weighting": "volume"}
-    for bad in ({"size_definition": "weight", "weighting": "volume"}, {"size_definition": "ecd"}, "ecd"):
+    for bad in ({"size_definition": "weight", "weighting": "volume"}, {"size_definition": "ecd"}, "ecd", None):
         problems = cal.calibration_problems({**block, "basis": bad})
         assert problems and "calibration.basis" in problems[0]
+    problems = cal.calibration_problems({**block, "weighting": "mass"})  # what the rows would be labelled: refused
+    assert problems and "calibration.weighting one of number, area, volume" in problems[0]
+    assert set(cal.FOOTPRINT_FOR) == set(SOLID_DEFINITIONS) and set(cal.FOOTPRINT_FOR.values()) <= set(
+        FOOTPRINT_DEFINITIONS)
     meta, sieve_v = {"calibration": block}, {"size_definition": "sieve", "weighting": "volume"}
     assert cal.source_reading(meta, sieve_v) == grains and cal.source_reading({}, sieve_v) == sieve_v
     with pytest.raises(PsdError, match="calibrated for the sieve size, volume-weighted"):
         cal.source_reading(meta, {"size_definition": "sieve", "weighting": "number"})
     note = cal.calibration_note(meta, sieve_v)
     assert "sieve size, volume-weighted, corrected from its feret-min reading, volume-weighted" in note
+    with pytest.raises(PsdError, match="predict without --size-definition and --weighting \\(or with --size-definition "
+                                       "sieve --weighting volume\\)"):
+        cal.apply_calibration(meta, {"size_definition": "sieve", "weighting": "number"}, np.ones(3))
     # a calibrated model reads in its calibration's definition and weighting unless told otherwise
     from psdfactory.learn.estimator import Estimator, reading_of
 
@@ -391,12 +399,13 @@ def test_an_affine_calibration_below_ten_and_the_commands_refusals(model, plugin
     np.testing.assert_allclose([r["d50_mm"] for r in got_v], [r["d50_mm"] for r in got], rtol=1e-6)
     with pytest.raises(PsdError, match="calibrated for the .* size, volume-weighted"):
         predict_files(tmp_path / "volume.pt", images, weighting="number")
-    # a basis this model does not give (a block edited, or moved onto another model) is refused, not read as another
+    # a basis this model does not give (a block edited, or moved onto another model) is refused when the model is
+    # loaded, not read as another reading
     ckpt = load_checkpoint(tmp_path / "volume.pt")
     ckpt["meta"]["calibration"]["basis"] = {"size_definition": "feret-min", "weighting": "volume"}
     write_torch(tmp_path / "moved.pt", ckpt)
-    with pytest.raises(PsdError, match="corrects its feret-min reading, volume-weighted, which this meancolour model "
-                                       "does not give"):
+    with pytest.raises(PsdError, match="calibration.basis: the correction takes the feret-min reading, "
+                                       "volume-weighted, which this meancolour model does not give"):
         predict_files(tmp_path / "moved.pt", images)
 
     capsys.readouterr()

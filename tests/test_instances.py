@@ -707,8 +707,7 @@ def test_a_grain_finder_calibrated_to_mass_weighted_references_corrects_its_grai
 
     root, model_path, _ = tiny
     ckpt = torch.load(model_path, map_location="cpu", weights_only=True)
-    est = SimpleNamespace(meta=ckpt["meta"], definitions=InstanceEstimator.definitions,
-                          weightings=InstanceEstimator.weightings)
+    est = SimpleNamespace(meta=ckpt["meta"], reads=InstanceEstimator.reads)
     for asked, want in [(("sieve", None), ("sieve", "number")), (("sieve", "volume"), ("feret-min", "volume")),
                         (("esd", "area"), ("ecd", "area")), (("ecd", "volume"), ("ecd", "volume"))]:
         what, basis = references_reading(est, *asked)

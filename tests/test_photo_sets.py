@@ -538,6 +538,44 @@ def test_evaluate_photos_writes_metrics_a_row_and_an_overlay_per_photo(tmp_path,
     assert "a.png: at resnet18's scale (0.500 mm/px) this photo is 40 x 40 px, smaller than the 64 px" in err[0]
 
 
+def test_evaluate_photos_reads_a_calibrated_model_as_predict_does_and_names_its_weighting(tmp_path, cnn_model,
+                                                                                        caplog):
+    """A CNN calibrated to references by mass: its photo readings are its own corrected, labelled volume-weighted
+    in photos.csv, with a warning that the set's references count grains."""
+    import logging
+
+    import torch
+
+    from psdfactory.cli import main
+    from psdfactory.learn import calibration as cal
+    from psdfactory.learn.estimator import model_definition
+    from psdfactory.learn.runtime import write_torch
+
+    folder = make_photo_set(tmp_path / "ph", size=(80, 80))
+    params = json.dumps({"photoset": photo_params(validate(photo_config(folder, {})), "field"), "precision": "fp32"})
+    raw_out, cal_out = tmp_path / "raw", tmp_path / "cal"
+    assert main(["evaluate-photos", "--params", params, "--model", str(cnn_model), "--out-dir", str(raw_out)]) == 0
+    ckpt = torch.load(cnn_model, map_location="cpu", weights_only=True)
+    own = {"size_definition": model_definition(ckpt["meta"]), "weighting": ckpt["meta"].get("weighting", "number")}
+    pred = np.array([[1.0, 2.0, 3.0], [2.0, 3.0, 5.0], [3.0, 5.0, 8.0]])
+    block = cal.calibration_block(["x", "y", "z"], pred, 2 * pred + 1, own["size_definition"], "volume", 0.5,
+                                  "2025-01-01T00:00:00+00:00", "0.1.0", basis=own)
+    assert block["basis"] == own
+    write_torch(tmp_path / "calibrated.pt", {**ckpt, "meta": {**ckpt["meta"], "calibration": block}})
+    with caplog.at_level(logging.WARNING, logger="psdfactory"):
+        assert main(["evaluate-photos", "--params", params, "--model", str(tmp_path / "calibrated.pt"),
+                     "--out-dir", str(cal_out)]) == 0
+    assert any("reads volume-weighted d-values (its calibration's)" in r.message for r in caplog.records)
+    raw, got = (json.loads((o / "metrics.json").read_text()) for o in (raw_out, cal_out))
+    assert got["reading"] == {"size_definition": own["size_definition"], "weighting": "volume"}
+    for name in ("a.png", "b.png"):
+        r = np.array(list(raw["photos"][name]["reading_mm"].values()))
+        np.testing.assert_allclose(list(got["photos"][name]["reading_mm"].values()), np.sort(2 * r + 1), rtol=1e-5)
+    rows = list(csv.DictReader(open(cal_out / "photos.csv")))
+    assert {(r["reading_size_definition"], r["reading_weighting"]) for r in rows} == {(own["size_definition"],
+                                                                                        "volume")}
+
+
 def test_the_workflow_plans_a_job_per_model_and_photo_set_and_refuses_a_broken_one_before_any(tmp_path):
     from PIL import Image
 

@@ -570,15 +570,17 @@ def build_parser() -> argparse.ArgumentParser:
                    "volume_mm3, touches_edge, mask_mm_per_px; docs/photos.md)")
     p.add_argument("--size-definition", choices=SIZE_DEFINITIONS, metavar="NAME",
                    help="what d10/d50/d90 are of: " + ", ".join(SIZE_DEFINITIONS) + " (default: the definition "
-                   "the model was trained on, in the CSV's size_definition column). An instance model also "
-                   "estimates the other solid definitions (sieve, b-axis, c-axis, esd) and measures feret-min, "
-                   "feret-max and ecd on the whole grains it finds; a CNN reads only its own")
+                   "the model was trained on, or a calibrated model's, in the CSV's size_definition column). An "
+                   "instance model also estimates the other solid definitions (sieve, b-axis, c-axis, esd) and "
+                   "measures feret-min, feret-max and ecd on the whole grains it finds; a CNN reads only its own; a "
+                   "calibrated model only its calibration's")
     p.add_argument("--weighting", choices=GRAIN_WEIGHTINGS, metavar="NAME",
                    help="what the percentiles count: " + ", ".join(GRAIN_WEIGHTINGS) + " (grains, their footprint "
-                   "area, their volume; default: the model's training weighting, in the CSV's weighting column). "
-                   "An instance model weights feret-min, feret-max and ecd any way (area-weighted grains of a "
-                   "photo compare with a Wolman grid count, volume-weighted with a sieve analysis); its other "
-                   "definitions and a CNN give only the weighting they were trained on")
+                   "area, their volume; default: the model's training weighting, or a calibrated model's, in the "
+                   "CSV's weighting column). An instance model weights feret-min, feret-max and ecd any way "
+                   "(area-weighted grains of a photo compare with a Wolman grid count, volume-weighted with a sieve "
+                   "analysis); its other definitions and a CNN give only the weighting they were trained on, a "
+                   "calibrated model only its calibration's (calibrate --weighting)")
     p.add_argument("--tile", type=positive_int, default=PREDICT_TILE_PX, metavar="PX",
                    help="instance models: run an image larger than this at the network's scale in overlapping "
                    "tiles of this side (px, a multiple of 32), stitched into one result: memory for the network "

@@ -36,6 +36,12 @@ WEIGHTINGS = ("number", "volume")  # what a percentile counts: particles, or the
 GRAIN_WEIGHTINGS = ("number", "area", "volume")
 
 
+def check_grain_weighting(weighting: str) -> None:
+    """Refuse, naming it, a weighting that is none of GRAIN_WEIGHTINGS (--weighting)."""
+    if weighting not in GRAIN_WEIGHTINGS:
+        raise PsdError(f"--weighting {weighting!r}: not a weighting; one of {', '.join(GRAIN_WEIGHTINGS)}")
+
+
 def size_column(definition: str) -> str:
     """The particle table's column of a size definition: 'b-axis' → 'b_axis_mm'."""
     if definition not in SIZE_DEFINITIONS:

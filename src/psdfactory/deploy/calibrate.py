@@ -17,7 +17,7 @@ import numpy as np
 from .. import PsdError, __version__
 from ..io import same_file
 from ..learn import calibration as cal
-from ..psd import GRAIN_WEIGHTINGS, NAMES, TARGETS
+from ..psd import NAMES, TARGETS, check_grain_weighting
 from .predict import describe_model, image_files, load_predictor, predict_one, reading
 
 logger = logging.getLogger(__name__)
@@ -146,14 +146,10 @@ def references_reading(est, size_definition: str | None, weighting: str | None) 
     meta = est.meta
     wanted = reading(meta, size_definition)  # the definition, refused where the model cannot read it
     if weighting is not None:
-        if weighting not in GRAIN_WEIGHTINGS:
-            raise PsdError(f"--weighting {weighting!r}: not a weighting; one of {', '.join(GRAIN_WEIGHTINGS)}")
+        check_grain_weighting(weighting)
         wanted = {**wanted, "weighting": weighting}
 
-    def can_read(definition: str, w: str) -> bool:
-        return definition in est.definitions(meta) and w in est.weightings(meta, definition)
-
-    basis = cal.basis_for(wanted, can_read, lambda d: reading(meta, d)["weighting"])
+    basis = cal.basis_for(wanted, lambda d, w: est.reads(meta, d, w), lambda d: reading(meta, d)["weighting"])
     return wanted, basis
 
 
@@ -225,11 +221,8 @@ def table_lines(block: dict) -> list[str]:
     def pct(v: float) -> str:
         return f"{v:>8.1f}" if math.isfinite(v) else f"{'-':>8}"
 
-    basis = cal.basis_of(block)
-    source = ("" if "basis" not in block else
-              f" (from its {basis['size_definition']} reading, {basis['weighting']}-weighted)")
     lines = [f"calibration on {block['n']} references: {block['method']} correction per target, "
-             f"{block['size_definition']} size, {block['weighting']}-weighted{source}",
+             f"{block['size_definition']} size, {block['weighting']}-weighted{cal.basis_phrase(block)}",
              f"{'':<8}{'uncalibrated':>20}   {'calibrated (leave-one-out)':>26}",
              f"{'target':<8}{'MAPE %':>10}{'MAE mm':>10}   {'MAPE %':>16}{'MAE mm':>10}"]
     for name in NAMES:

@@ -1,7 +1,7 @@
 """``psdfactory evaluate-photos``: a trained model on a photo set (the config's `photos`) —
 labelled photographs, read as `psdfactory predict` reads a photo (at its mm per px, resized to
-the model's scale, tile by tile where it is large; a calibrated model's correction applied to its
-own reading), scored against the set's reference masks and d10/d50/d90.
+the model's scale, tile by tile where it is large; a calibrated model's correction applied, in the
+definition and weighting it was calibrated to), scored against the set's reference masks and d10/d50/d90.
 
 What is measured, per photo and pooled over the set:
 
@@ -21,8 +21,9 @@ What is measured, per photo and pooled over the set:
 - **PSD**: d10/d50/d90 in the set's size definition, number-weighted 'hazen' percentiles of the
   grains found not touching the border, and their relative error against the reference's
   (its CSV; without one, the same percentiles of its masks' grains). A model that finds no
-  grains (a CNN) gives its own reading only, in its own size definition: compared with the
-  reference all the same, the definitions named beside the figures.
+  grains (a CNN) gives its own reading only, in its own size definition (a calibrated one: its
+  calibration's definition and weighting): compared with the reference all the same, the
+  definitions named beside the figures (photos.csv: `reading_size_definition`, `reading_weighting`).
 
 Where the set declares an outline band (`outline_band_px`: the reference masks keep that much
 background between grains that touch, as segmenteverygrain's do), every figure is given again
@@ -42,13 +43,12 @@ import numpy as np
 
 from .. import PsdError
 from ..io import atomic_path, open_image, read_photo, write_json
-from ..learn.calibration import apply_calibration, source_reading
 from ..learn.estimator import Estimator, Reading, reading_of
 from ..photoset import Photo, PhotoSet
 from ..psd import NAMES, weighted_percentiles
 from .predict import (
     DEFAULT_TILE_PX,
-    check_basis,
+    corrected_reading,
     grain_count_problem,
     load_predictor,
     network_scale,
@@ -261,6 +261,7 @@ TABLE_COLUMNS = ["image", "mm_per_px", "network_h", "network_w", "n_found", "n_f
                  "size_err_median", "size_err_p90", "sieve_err_median", "sieve_err_p90",
                  *(f"{n}_mm" for n in NAMES), *(f"reference_{n}_mm" for n in NAMES), *(f"rel_err_{n}" for n in NAMES),
                  "psd_size_definition", *(f"reading_{n}_mm" for n in NAMES), "reading_size_definition",
+                 "reading_weighting",
                  "outline_band_px", "restored_f1", "restored_size_err_median", "restored_size_err_p90",
                  *(f"restored_reference_{n}_mm" for n in NAMES), *(f"restored_rel_err_{n}" for n in NAMES), "overlay",
                  "warning"]
@@ -269,13 +270,15 @@ RESTORED_KEYS = ("band_px", "reference_mm", "reference_from", "psd_rel_err", "n_
                  "size_error")
 
 
-def table_row(photo: Photo, r: dict, psd_definition: str, reading: str) -> dict:
-    """A photo's row of photos.csv (empty cells where a figure does not exist)."""
+def table_row(photo: Photo, r: dict, psd_definition: str, reading: dict) -> dict:
+    """A photo's row of photos.csv (empty cells where a figure does not exist); `reading`: what the
+    model's own d-values are of (``reading_of``)."""
     det, ref = r.get("detection") or {}, r.get("reference_mm") or {}
     se = {k: (r.get("size_error") or {}).get(k) or {} for k in ("size_definition", "sieve")}
     out = {"image": photo.name, "mm_per_px": photo.mm_per_px, "network_h": r["network_hw"][0],
            "network_w": r["network_hw"][1], "psd_size_definition": psd_definition,
-           "reading_size_definition": reading, "overlay": r["overlay"], "warning": r.get("warning", "")}
+           "reading_size_definition": reading["size_definition"], "reading_weighting": reading["weighting"],
+           "overlay": r["overlay"], "warning": r.get("warning", "")}
     out.update({k: r.get(k) for k in ("n_found", "n_found_off_border", "n_reference")})
     out.update({k: det.get(k) for k in ("tp", "fp", "fn", "left_out_found", "left_out_reference", "precision",
                                         "recall", "f1")})
@@ -310,8 +313,9 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         est.run = torch_runner(est.inference_module(), dev, prec)
     meta, arch = est.meta, est.meta["arch"]
     own = reading_of(type(est), meta, None)
-    if "calibration" in meta:
-        check_basis(est, source_reading(meta, own))
+    if not est.finds_grains and own["weighting"] != "number":  # a CNN calibrated to references by mass or area
+        logger.warning(f"{arch} reads {own['weighting']}-weighted d-values (its calibration's): the photo set's "
+                       "references count grains (number-weighted), so its d-errors compare unlike distributions")
     psd_definition = photos.size_definition if est.finds_grains else own["size_definition"]
     scorer = PhotoScorer(est, photos)
     restored = PhotoScorer(est, photos, outlines_restored=True) if photos.outline_band_px != 0 else None
@@ -328,10 +332,7 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         image, size_hw = read_photo(photo.path, need=lambda h, w, p=photo: target_size(h, w, meta, p.mm_per_px))
         found, network_hw = read_at_scale(est, image, size_hw, photo.mm_per_px, DEFAULT_TILE_PX, str(photo.path))
         # its own reading as predict gives it (a calibrated model's correction applied)
-        source = source_reading(meta, own)
-        reading = Reading(apply_calibration(meta, own, est.in_definition(found, source["size_definition"],
-                                                                         source["weighting"], str(photo.path))),
-                          grains=found.grains)
+        reading = Reading(corrected_reading(est, found, own, str(photo.path))[0], grains=found.grains)
         where = f"{photos.name}/{photo.name}"
         # a reading that is no size distribution, or rests on no or few whole grains: scored all the same (a photo
         # with no grain found scores F1 0), said in the log and beside its figures (metrics, photos.csv, the report)
@@ -350,7 +351,7 @@ def evaluate_photos(model_path: Path, photos: PhotoSet, out_dir: Path, device: s
         caption = _caption(arch, photo, r, psd_definition)
         write_overlay(overlays / r["overlay"], overlay(image, ref_mask, found, caption))
         per_photo[photo.name] = r
-        rows.append(table_row(photo, r, psd_definition, own["size_definition"]))
+        rows.append(table_row(photo, r, psd_definition, own))
         logger.info(f"{arch} on {photos.name}/{photo.name}: " + summary_line(r, psd_definition))
     result = {
         "arch": arch, "photoset": photos.name, "weights": meta.get("weights"), "precision": prec,

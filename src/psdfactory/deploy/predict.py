@@ -22,7 +22,7 @@ from ..config import AUTO_SCALE_MARGIN, LEGACY_AUTO_SCALE_PROBE, PREDICT_TILE_PX
 from ..io import read_photo, same_file, write_json
 from ..learn.calibration import apply_calibration, calibration_note, source_reading
 from ..learn.data import to_input
-from ..learn.estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS, Estimator, reading_of
+from ..learn.estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS, Estimator, Reading, reading_of
 from ..photoset import IMAGE_SUFFIXES
 from ..psd import SOLID_DEFINITIONS, TARGETS
 
@@ -486,6 +486,15 @@ def grain_count_problem(where: str, grains: object) -> tuple[str | None, str | N
     return None, None
 
 
+def corrected_reading(est: Estimator, found: Reading, what: dict, where: str) -> tuple[np.ndarray, dict]:
+    """(d10/d50/d90 of `found` as `what` asks, the reading they were taken from): a calibrated
+    model's basis reading (`learn.calibration.source_reading`) with its correction applied, else the
+    reading `what` names as it is."""
+    source = source_reading(est.meta, what)
+    d = est.in_definition(found, source["size_definition"], source["weighting"], where)
+    return apply_calibration(est.meta, what, d), source
+
+
 def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: GrainOutputs | None = None,
                 what: dict | None = None, tile: int | None = DEFAULT_TILE_PX) -> dict:
     """One image → its row; a bad image gives a row whose `error` names the file and the reason.
@@ -504,8 +513,7 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
         error, few = grain_count_problem(str(path), found.grains)
         if error:
             raise PsdError(error)
-        source = source_reading(meta, what)  # a calibrated model's basis, corrected below
-        d = est.in_definition(found, source["size_definition"], source["weighting"], str(path))
+        d, source = corrected_reading(est, found, what, str(path))
         outside = getattr(found.grains, "readout_outside", ())
         extrapolates = None
         if outside and source["size_definition"] in SOLID_DEFINITIONS:
@@ -515,7 +523,6 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
                             f"({'; '.join(outside[:3])}{'; ...' if len(outside) > 3 else ''}): the read-out "
                             f"extrapolates{held}; check the d-values against the grains' own (--size-definition "
                             "feret-min)")
-        d = apply_calibration(meta, what, d)  # a calibrated model's correction (psdfactory calibrate)
         warning = say_warnings(str(path), [few, extrapolates, not_a_psd_warning(str(path), meta["arch"], d)])
         return {"image": str(path), **{t: float(v) for t, v in zip(TARGETS, d, strict=True)}, **what, "error": "",
                 "warning": warning}
@@ -580,7 +587,6 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
                     "(its recipe's train.instances.auto_scale, as --auto-scale); --no-auto-scale reads every photo "
                     "at its own scale")
     if (note := calibration_note(meta, what)) is not None:  # refuses a reading the calibration is not of
-        check_basis(est, source_reading(meta, what))
         logger.info(note)
         fitted = meta["calibration"].get("auto_scale")
         if fitted is not None and est.finds_grains and fitted != est.auto_scale:
@@ -589,16 +595,6 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
                            f"a photo's scale the correction does not fit its reading; predict with "
                            f"{'--auto-scale' if fitted else '--no-auto-scale'}, as it was calibrated")
     return est, files, what
-
-
-def check_basis(est: Estimator, basis: dict) -> None:
-    """Refuse a calibration whose basis (the reading its correction takes) is not one this model
-    gives: a block edited by hand, or moved onto another model."""
-    definition, weighting = basis["size_definition"], basis["weighting"]
-    if definition not in est.definitions(est.meta) or weighting not in est.weightings(est.meta, definition):
-        raise PsdError(f"this model's calibration corrects its {definition} reading, {weighting}-weighted, which this "
-                       f"{est.meta['arch']} model does not give: the calibration block is not this model's; "
-                       "calibrate the model again (psdfactory calibrate)")
 
 
 def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None = None, device: str = "cpu",

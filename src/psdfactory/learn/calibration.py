@@ -34,7 +34,7 @@ import math
 import numpy as np
 
 from .. import PsdError
-from ..psd import GRAIN_WEIGHTINGS, NAMES, SIZE_DEFINITIONS, TARGETS, WEIGHTINGS
+from ..psd import GRAIN_WEIGHTINGS, NAMES, SIZE_DEFINITIONS, TARGETS
 
 MIN_REFERENCES = 3
 ISOTONIC_FROM = 10  # references from which the correction is isotonic (below: affine)
@@ -72,6 +72,15 @@ def basis_of(block: dict) -> dict:
     """The reading a calibration block's correction takes (`basis_for`); a block without one
     corrects the reading it gives."""
     return dict(block.get("basis") or {"size_definition": block["size_definition"], "weighting": block["weighting"]})
+
+
+def basis_phrase(block: dict) -> str:
+    """", corrected from its <definition> reading, <weighting>-weighted" where a block's correction
+    takes another reading than the one it gives; "" where it corrects that one."""
+    basis = basis_of(block)
+    if (basis["size_definition"], basis["weighting"]) == (block["size_definition"], block["weighting"]):
+        return ""
+    return f", corrected from its {basis['size_definition']} reading, {basis['weighting']}-weighted"
 
 
 # ---- references -----------------------------------------------------------------------------
@@ -294,11 +303,9 @@ def calibration_problems(block: object) -> list[str]:
         return [f"calibration.method must be one of {', '.join(METHODS)} (got {str(method)[:40]!r})"]
     if not (isinstance(n, int) and not isinstance(n, bool) and MIN_REFERENCES <= n <= MAX_REFERENCES):
         return [f"calibration.n must be a whole number of at least {MIN_REFERENCES} (got {str(n)[:40]!r})"]
-    weighting = block.get("weighting")
-    if block.get("size_definition") not in SIZE_DEFINITIONS or not (
-            isinstance(weighting, str) and 0 < len(weighting) <= 20 and weighting.isalpha()):
+    if block.get("size_definition") not in SIZE_DEFINITIONS or block.get("weighting") not in GRAIN_WEIGHTINGS:
         return [f"calibration.size_definition must be one of {', '.join(SIZE_DEFINITIONS)} and calibration.weighting "
-                f"a weighting ({', '.join(WEIGHTINGS)}, ...)"]
+                f"one of {', '.join(GRAIN_WEIGHTINGS)}"]
     if block.get("targets", list(TARGETS)) != list(TARGETS):
         return [f"calibration.targets must be {list(TARGETS)}"]
     problems = _params_problems(block.get("params"), method)
@@ -315,9 +322,9 @@ def calibration_problems(block: object) -> list[str]:
                              "calibration.references")
         except PsdError as e:
             problems.append(str(e))
-    basis = block.get("basis")
-    if basis is not None and not (isinstance(basis, dict) and basis.get("size_definition") in SIZE_DEFINITIONS
-                                  and basis.get("weighting") in GRAIN_WEIGHTINGS):
+    basis = block.get("basis", {"size_definition": block["size_definition"], "weighting": block["weighting"]})
+    if not (isinstance(basis, dict) and basis.get("size_definition") in SIZE_DEFINITIONS
+            and basis.get("weighting") in GRAIN_WEIGHTINGS):
         problems.append(f"calibration.basis must give a size_definition ({', '.join(SIZE_DEFINITIONS)}) and a "
                         f"weighting ({', '.join(GRAIN_WEIGHTINGS)})")
     if not isinstance(block.get("auto_scale", False), bool):
@@ -344,20 +351,18 @@ def calibration_note(meta: dict, what: dict) -> str | None:
     loo = ", ".join(f"{n} {block['loo'][n]['mape_pct']:.1f} %" for n in NAMES)
     raw = ", ".join(f"{n} {block['uncalibrated'][n]['mape_pct']:.1f} %" for n in NAMES)
     scale = "" if block.get("mm_per_px") is None else f" at {block['mm_per_px']:g} mm/px"
-    basis = basis_of(block)
-    source = ("" if "basis" not in block else
-              f", corrected from its {basis['size_definition']} reading, {basis['weighting']}-weighted")
     return (f"calibrated on {block['n']} references ({block['method']}, {block['size_definition']} size, "
-            f"{block['weighting']}-weighted{source}{scale}, {block['date']}): LOO error (mean abs %) {loo}; "
-            f"uncalibrated {raw}")
+            f"{block['weighting']}-weighted{basis_phrase(block)}{scale}, {block['date']}): LOO error (mean abs %) "
+            f"{loo}; uncalibrated {raw}")
 
 
 def check_reading(block: dict, what: dict) -> None:
     if (what["size_definition"], what["weighting"]) != (block["size_definition"], block["weighting"]):
         raise PsdError(f"this model is calibrated for the {block['size_definition']} size, {block['weighting']}-"
                        f"weighted; its correction does not apply to the {what['size_definition']} size, "
-                       f"{what['weighting']}-weighted: predict in {block['size_definition']} (--size-definition "
-                       f"{block['size_definition']}), or calibrate the model for {what['size_definition']}")
+                       f"{what['weighting']}-weighted: predict without --size-definition and --weighting (or with "
+                       f"--size-definition {block['size_definition']} --weighting {block['weighting']}), or calibrate "
+                       f"the model for the {what['size_definition']} size, {what['weighting']}-weighted")
 
 
 def source_reading(meta: dict, what: dict) -> dict:

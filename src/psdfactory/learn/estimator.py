@@ -39,7 +39,7 @@ import torch
 from torch import nn
 
 from .. import PsdError
-from ..psd import GRAIN_WEIGHTINGS, SIZE_DEFINITIONS, TARGETS, WEIGHTINGS
+from ..psd import GRAIN_WEIGHTINGS, SIZE_DEFINITIONS, TARGETS, WEIGHTINGS, check_grain_weighting
 
 logger = logging.getLogger(__name__)
 LEGACY_DEFINITION = "b-axis"  # a model trained before sizes had names learnt the drawn size, the b-axis
@@ -157,6 +157,11 @@ class Estimator:
         (its training labels' weighting first): by default only that one."""
         return (meta.get("weighting", "number"),)
 
+    @classmethod
+    def reads(cls, meta: dict, definition: str, weighting: str) -> bool:
+        """Whether a model of this meta gives d-values of `definition`, weighted by `weighting`."""
+        return definition in cls.definitions(meta) and weighting in cls.weightings(meta, definition)
+
     def in_definition(self, reading: Reading, definition: str, weighting: str, where: str) -> np.ndarray:
         """d10/d50/d90 of `reading` in `definition` (one of `definitions()`), `weighting` (one of
         `weightings(definition)`)."""
@@ -214,8 +219,8 @@ def reading_of(est_cls: type[Estimator], meta: dict, requested: str | None, weig
         raise PsdError(f"--size-definition {definition}: this {meta.get('arch')} model reads "
                        f"{', '.join(d for d in SIZE_DEFINITIONS if d in definitions)} (trained on {own} labels); train "
                        f"one with labels.size_definition: {definition} to read {definition}")
-    if weighting is not None and weighting not in GRAIN_WEIGHTINGS:
-        raise PsdError(f"--weighting {weighting!r}: not a weighting; one of {', '.join(GRAIN_WEIGHTINGS)}")
+    if weighting is not None:
+        check_grain_weighting(weighting)
     allowed = est_cls.weightings(meta, definition)
     weighting = weighting or (own_weighting if own_weighting in allowed else allowed[0])
     if weighting not in allowed:

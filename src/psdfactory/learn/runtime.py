@@ -321,7 +321,7 @@ def meta_problems(meta: object) -> list[str]:
     keys predict and evaluate rely on, their types and sane ranges, and its estimator's own
     (`Estimator.meta_problems`), and a calibration block (`calibration.calibration_problems`).
     Empty when it is fine."""
-    from .calibration import calibration_problems
+    from .calibration import basis_of, calibration_problems
     from .registry import estimator_class
 
     if not isinstance(meta, dict):
@@ -341,6 +341,11 @@ def meta_problems(meta: object) -> list[str]:
         if definition is not None and definition not in est_cls.definitions(meta):
             problems.append(f"calibration.size_definition {definition} is not one this {meta['arch']} model reads "
                             f"({', '.join(est_cls.definitions(meta))})")
+        basis = basis_of(meta["calibration"]) if not problems else None
+        if basis is not None and not est_cls.reads(meta, basis["size_definition"], basis["weighting"]):
+            problems.append(f"calibration.basis: the correction takes the {basis['size_definition']} reading, "
+                            f"{basis['weighting']}-weighted, which this {meta['arch']} model does not give (a "
+                            "calibration of another model?): calibrate this model again")
     return problems
 
 
