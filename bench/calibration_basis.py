@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -110,8 +111,15 @@ def main(argv: list[str] | None = None) -> int:
     if len(scenes) < 4:
         ap.error(f"{len(scenes)} scenes with image.png and labels.json under {args.scenes}: at least 4 needed")
     ref = np.array([labels_of(s, args.label_definition, args.label_weighting) for s in scenes])
-    scale = ([scene_scale(s) for s in scenes] if args.mm_per_px == "scene"
-             else None if args.mm_per_px is None else float(args.mm_per_px))
+    if args.mm_per_px is None or args.mm_per_px == "scene":
+        scale = None if args.mm_per_px is None else [scene_scale(s) for s in scenes]
+    else:
+        try:
+            scale = float(args.mm_per_px)
+        except ValueError:
+            scale = float("nan")
+        if not (math.isfinite(scale) and scale > 0):
+            ap.error(f"--mm-per-px {args.mm_per_px!r}: a positive number of mm per pixel, or 'scene'")
     reads = readings(args.model, [s / "image.png" for s in scenes], scale)
     print(f"{len(scenes)} scenes; references: {args.label_definition}, {args.label_weighting}-weighted; "
           f"model {args.model}")

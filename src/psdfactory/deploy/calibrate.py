@@ -148,7 +148,6 @@ def references_reading(est, size_definition: str | None, weighting: str | None) 
     if weighting is not None:
         check_grain_weighting(weighting)
         wanted = {**wanted, "weighting": weighting}
-
     basis = cal.basis_for(wanted, lambda d, w: est.reads(meta, d, w), lambda d: reading(meta, d)["weighting"])
     return wanted, basis
 

@@ -322,9 +322,9 @@ def calibration_problems(block: object) -> list[str]:
                              "calibration.references")
         except PsdError as e:
             problems.append(str(e))
-    basis = block.get("basis", {"size_definition": block["size_definition"], "weighting": block["weighting"]})
-    if not (isinstance(basis, dict) and basis.get("size_definition") in SIZE_DEFINITIONS
-            and basis.get("weighting") in GRAIN_WEIGHTINGS):
+    basis = block.get("basis")  # absent: the block's own reading, checked above
+    if "basis" in block and not (isinstance(basis, dict) and basis.get("size_definition") in SIZE_DEFINITIONS
+                                 and basis.get("weighting") in GRAIN_WEIGHTINGS):
         problems.append(f"calibration.basis must give a size_definition ({', '.join(SIZE_DEFINITIONS)}) and a "
                         f"weighting ({', '.join(GRAIN_WEIGHTINGS)})")
     if not isinstance(block.get("auto_scale", False), bool):
