@@ -254,38 +254,6 @@ def test_readout_recovers_a_linear_map_and_orders_the_targets():
 
 
 
-def test_optional_readout_features_enter_only_the_targets_they_pay_for():
-    from psdfactory.learn.instances.stats import MAP_READOUT_FEATURES, MAP_SIZE_STATS, READOUT_OPTIONAL
-
-    rng = np.random.default_rng(2)
-    n = 120
-    x = rng.normal(size=(n, len(STAT_NAMES))) + 5.0
-    j = STAT_NAMES.index
-    y = np.column_stack([x[:, j("d10_mm")] + 0.1 * rng.normal(size=n),  # the footprints alone
-                         10 + x[:, j("d50_mm")] + x[:, j("map_d50_mm")] + 0.1 * rng.normal(size=n),  # the map too
-                         30 + 2 * x[:, j("d90_mm")] + 0.3 * rng.normal(size=n)])
-    ro = fit_readout(x, y, features=MAP_READOUT_FEATURES, optional=MAP_SIZE_STATS)
-    assert json.loads(json.dumps(ro)) == ro  # plain types only
-    assert ro["optional_used"] == [False, True, False]
-    gain, se = np.array(ro["optional_gain"]), np.array(ro["optional_se"])
-    assert gain[1] > 0.5 and gain[1] > se[1] and not (gain[[0, 2]] > se[[0, 2]]).any()
-    w = np.array(ro["weights"])
-    extra = [1 + ro["features"].index(f) for f in MAP_SIZE_STATS]
-    assert np.abs(w[extra][:, [0, 2]]).max() == 0.0 and np.abs(w[extra][:, 1]).max() > 0.5
-    # each target reads as the read-out of its own features does
-    full, base = fit_readout(x, y, features=MAP_READOUT_FEATURES), fit_readout(x, y, features=READOUT_FEATURES)
-    for r in (ro, full, base):
-        r["ratio_lo"] = r["ratio_hi"] = None  # the hold aside: the linear fits compared
-    p, pf, pb = (apply_readout(r, x) for r in (ro, full, base))
-    assert p[:, 1] == pytest.approx(pf[:, 1]) and p[:, [0, 2]] == pytest.approx(pb[:, [0, 2]])
-    assert ro["cv_r2"] == pytest.approx([base["cv_r2"][0], full["cv_r2"][1], base["cv_r2"][2]])
-    assert READOUT_OPTIONAL["footprints+size_map_per_target"] == MAP_SIZE_STATS
-    few = fit_readout(x[:4], y[:4], features=MAP_READOUT_FEATURES, optional=MAP_SIZE_STATS)
-    assert few["optional_used"] == [False] * 3 and few["optional_gain"] == [None] * 3  # too few to judge: left out
-    with pytest.raises(ValueError, match="not among its features"):
-        fit_readout(x, y, features=READOUT_FEATURES, optional=MAP_SIZE_STATS)
-
-
 def test_a_readout_names_the_statistics_it_would_extrapolate_from():
     from psdfactory.learn.readout import DOMAIN_MARGIN, outside_domain
 

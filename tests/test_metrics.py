@@ -34,30 +34,3 @@ def test_order_violations_counted():
     y = np.ones((4, 3))
     p = np.array([[1, 2, 3], [2, 1, 3], [1, 3, 2], [1, 1, 1]], dtype=float)
     assert regression_metrics(y, p)["order_violations"] == pytest.approx(0.5)
-
-
-def test_paired_r2_gain_hand_computed():
-    from psdfactory.learn.metrics import paired_r2_gain
-
-    y = np.array([[0.0], [1.0], [2.0], [3.0]])  # total sum of squares 5
-    a = y + np.array([[1.0], [-1.0], [1.0], [-1.0]])  # squared errors 1, 1, 1, 1
-    b = y + np.array([[0.0], [0.0], [1.0], [-1.0]])  # 0, 0, 1, 1
-    gain, se = paired_r2_gain(y, a, b)
-    assert gain == pytest.approx([2.0 / 5.0])  # (1 + 1 + 0 + 0) / 5
-    d = np.array([1.0, 1.0, 0.0, 0.0])
-    assert se == pytest.approx([np.sqrt(4) * d.std(ddof=1) / 5.0])
-    gain_ba, se_ba = paired_r2_gain(y, b, a)
-    assert gain_ba == pytest.approx(-gain) and se_ba == pytest.approx(se)
-    flat, _ = paired_r2_gain(np.ones((4, 1)), a, b)
-    assert np.isnan(flat).all()  # a constant target has no R²
-
-
-def test_cross_validated_r2_is_r2_of_the_out_of_fold_predictions():
-    from psdfactory.learn.metrics import cross_validated_r2, out_of_fold, r2_scores
-
-    rng = np.random.default_rng(3)
-    x = rng.normal(size=(30, 2))
-    y = x @ [[1.0], [2.0]] + rng.normal(size=(30, 1)) * 0.1
-    oof = out_of_fold(x, y, folds=5, ridge=1e-3)
-    assert cross_validated_r2(x, y, folds=5, ridge=1e-3) == pytest.approx(r2_scores(y, oof))
-    assert 0.9 < r2_scores(y, oof)[0] < 1.0  # out of fold: good but not perfect

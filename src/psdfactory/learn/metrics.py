@@ -83,39 +83,18 @@ def _usable(x: np.ndarray, y: np.ndarray, what: str) -> tuple[np.ndarray, np.nda
     return x, y
 
 
-def out_of_fold(x: np.ndarray, y: np.ndarray, folds: int = 5, ridge: float = 1e-3, seed: int = 0) -> np.ndarray:
-    """Out-of-fold predictions (N×T) of a ridge-regularised linear read-out of `y` (N×T, finite)
-    from `x` (N×F, finite): each scene predicted by the read-out fitted on the folds without it
-    (features standardised on those folds). The folds depend on N and `seed` only, so two feature
-    sets of the same scenes are compared on the same folds."""
-    n = len(y)
-    order = np.random.default_rng(seed).permutation(n)
-    pred = np.empty_like(np.asarray(y, float))
-    for k in range(min(folds, n)):
-        test = order[k::min(folds, n)]
-        train = np.setdiff1d(order, test)
-        pred[test] = ridge_predict(x[train], y[train], x[test], ridge)
-    return pred
-
-
 def cross_validated_r2(x: np.ndarray, y: np.ndarray, folds: int = 5, ridge: float = 1e-3, seed: int = 0) -> np.ndarray:
     """Out-of-fold R² per target of a ridge-regularised linear read-out of `y` (N×T) from `x`
     (N×F); features standardised on each training fold. Rows with a NaN feature are dropped."""
     x, y = _usable(x, y, "a cross-validated ceiling")
-    return r2_scores(y, out_of_fold(x, y, folds, ridge, seed))
-
-
-def paired_r2_gain(y: np.ndarray, pred_a: np.ndarray, pred_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """How much more of `y` (N×T) predictions `pred_b` explain than `pred_a`, per target: the gain
-    in R² and its standard error, from the scenes' paired differences of squared error (the
-    gain is their sum over the total sum of squares; its standard error √N × their sample standard
-    deviation over the same). NaN for a constant target or fewer than two scenes."""
-    y, a, b = (np.asarray(v, float).reshape(len(y), -1) for v in (y, pred_a, pred_b))
-    d = (y - a) ** 2 - (y - b) ** 2
-    ss_tot = ((y - y.mean(axis=0)) ** 2).sum(axis=0)
-    ss_tot = np.where(ss_tot > 0, ss_tot, np.nan)
-    se = np.sqrt(len(d)) * d.std(axis=0, ddof=1) / ss_tot if len(d) > 1 else np.full(d.shape[1], np.nan)
-    return d.sum(axis=0) / ss_tot, se
+    n = len(y)
+    order = np.random.default_rng(seed).permutation(n)
+    pred = np.empty_like(y)
+    for k in range(min(folds, n)):
+        test = order[k::min(folds, n)]
+        train = np.setdiff1d(order, test)
+        pred[test] = ridge_predict(x[train], y[train], x[test], ridge)
+    return r2_scores(y, pred)
 
 
 def fitted_r2(x_fit: np.ndarray, y_fit: np.ndarray, x: np.ndarray, y: np.ndarray, ridge: float = 1e-3) -> np.ndarray:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from .instances.stats import READOUT_FEATURES, SIZE_STATS, STAT_NAMES
-from .metrics import MIN_SCENES, out_of_fold, paired_r2_gain, r2_scores, ridge_fit
+from .metrics import MIN_SCENES, cross_validated_r2, ridge_fit
 
 READOUT_ALPHAS = (1e-3, 1e-2, 1e-1, 1.0)  # ridge strengths (× N scenes) tried by cross-validation
 # how far beyond the range of a feature it was fitted on (× that range) a read-out reads without a word: farther,
@@ -31,18 +31,8 @@ def readout_columns(x: np.ndarray, features: list[str] | tuple[str, ...]) -> np.
     return x[:, [STAT_NAMES.index(f) for f in features]]
 
 
-def _pick_alpha(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...], folds: int) -> tuple[float, np.ndarray | None]:
-    """The ridge strength of best k-fold cross-validated mean R² and its out-of-fold predictions;
-    (1.0, None) with fewer than MIN_SCENES scenes."""
-    if len(x) < MIN_SCENES:
-        return 1.0, None
-    oof = {a: out_of_fold(x, y, folds, ridge=a) for a in alphas}
-    best = max(oof, key=lambda a: np.nanmean(r2_scores(y, oof[a])))
-    return best, oof[best]
-
-
 def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOUT_ALPHAS, folds: int = 5,
-                features: tuple[str, ...] = READOUT_FEATURES, optional: tuple[str, ...] = ()) -> dict:
+                features: tuple[str, ...] = READOUT_FEATURES) -> dict:
     """A ridge read-out of the labels (N×3) from instance statistics (N×len(STAT_NAMES); the
     columns `features` are used), as plain lists: NaN features imputed with the training means,
     features standardised, the ridge strength (× N) picked by k-fold cross-validated mean R²
@@ -52,15 +42,7 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
     R² that picks the ridge strength is of the linear fit alone (a held reading differs from it
     only where a scene's residual crosses the extreme ratios, at most a hair where it was fitted).
     The ratios are to the number-weighted visible sizes whatever the labels' weighting: for
-    volume-weighted labels they are wider, the hold looser.
-
-    `optional` (some of `features`) enter a target's read-out only where they pay: where, on the
-    same folds, they raise its out-of-fold R² by more than one standard error of the scenes'
-    paired differences (`metrics.paired_r2_gain`). A feature that adds little where the read-out
-    is fitted is a liability where it is not (another look, another renderer): the parsimonious
-    fit is kept. Elsewhere a target's weights on them are zero, so the read-out applies as any
-    other; `optional_used`, `optional_gain` and `optional_se` record the choice. Without enough
-    scenes for cross-validation no optional feature is used."""
+    volume-weighted labels they are wider, the hold looser."""
     y = np.asarray(y, float)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = y / readout_columns(x, VISIBLE)  # how much the labels exceed the visible grains' sizes
@@ -70,44 +52,20 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
     fill = np.nanmean(np.where(np.isfinite(x), x, np.nan), axis=0) if len(x) else np.zeros(x.shape[1])
     fill = np.where(np.isfinite(fill), fill, 0.0)
     x = _impute(x, fill)
-    alpha, oof = _pick_alpha(x, y, alphas, folds)
-    mu, sd, w = ridge_fit(x, y, alpha)
-    out = {"features": list(features), "impute": fill.tolist(), "mean": mu.tolist(), "scale": sd.tolist(),
-           "weights": w.tolist(), "alpha": float(alpha), "n_scenes": int(len(x)),
-           "lo": x.min(axis=0).tolist() if len(x) else None, "hi": x.max(axis=0).tolist() if len(x) else None,
-           "ratio_lo": np.nanmin(ratio, axis=0).tolist() if bounded else None,
-           "ratio_hi": np.nanmax(ratio, axis=0).tolist() if bounded else None,
-           "cv_r2": [float(v) for v in r2_scores(y, oof)] if oof is not None else None}
-    if optional:
-        out.update(_optional_features(x, y, list(features), optional, alphas, folds, w, oof))
-    return out
-
-
-def _optional_features(x: np.ndarray, y: np.ndarray, features: list[str], optional: tuple[str, ...],
-                       alphas: tuple[float, ...], folds: int, w: np.ndarray, oof: np.ndarray | None) -> dict:
-    """fit_readout's per-target choice of the `optional` features (its docstring): the read-out's
-    weights, cross-validated R² and the record of the choice."""
-    if unknown := [f for f in optional if f not in features]:
-        raise ValueError(f"optional read-out features {unknown} are not among its features")
-    base = [j for j, f in enumerate(features) if f not in optional]
-    alpha_b, oof_b = _pick_alpha(x[:, base], y, alphas, folds)
-    if oof is None or oof_b is None:
-        used, gain, se = np.zeros(y.shape[1], bool), np.full(y.shape[1], np.nan), np.full(y.shape[1], np.nan)
+    cv = {}
+    if len(x) >= MIN_SCENES:
+        for a in alphas:
+            cv[a] = cross_validated_r2(x, y, folds, ridge=a).tolist()
+        alpha = max(cv, key=lambda a: np.nanmean(cv[a]))
     else:
-        gain, se = paired_r2_gain(y, oof_b, oof)
-        used = np.isfinite(gain) & np.isfinite(se) & (gain > se)
-    _, _, w_b = ridge_fit(x[:, base], y, alpha_b)
-    weights = np.zeros_like(w)
-    weights[[0, *(j + 1 for j in base)]] = w_b  # the intercept and the base features; the optional ones at zero
-    weights[:, used] = w[:, used]
-    cv = None if oof is None else [float(v) for v in r2_scores(y, np.where(used, oof, oof_b))]
-    return {"weights": weights.tolist(), "cv_r2": cv, "optional": list(optional),
-            "optional_used": used.tolist(), "optional_gain": _numbers(gain), "optional_se": _numbers(se),
-            "alpha_base": float(alpha_b)}
-
-
-def _numbers(v: np.ndarray) -> list[float | None]:
-    return [round(float(a), 6) if np.isfinite(a) else None for a in v]
+        alpha = 1.0
+    mu, sd, w = ridge_fit(x, y, alpha)
+    return {"features": list(features), "impute": fill.tolist(), "mean": mu.tolist(), "scale": sd.tolist(),
+            "weights": w.tolist(), "alpha": float(alpha), "n_scenes": int(len(x)),
+            "lo": x.min(axis=0).tolist() if len(x) else None, "hi": x.max(axis=0).tolist() if len(x) else None,
+            "ratio_lo": np.nanmin(ratio, axis=0).tolist() if bounded else None,
+            "ratio_hi": np.nanmax(ratio, axis=0).tolist() if bounded else None,
+            "cv_r2": [float(v) for v in cv[alpha]] if cv else None}
 
 
 def apply_readout(readout: dict, x: np.ndarray) -> np.ndarray:

@@ -143,8 +143,5 @@ def raw_psd(m: InstanceMeasurements, method: str) -> dict | None:
 
 
 # what the calibrated read-out may read (train.instances.readout): the instances' footprint
-# statistics, or those and the same statistics of the size map; with ``_per_target``, the size
-# map's for a target only where they pay (READOUT_OPTIONAL; `readout.fit_readout`)
-READOUTS = {"footprints": READOUT_FEATURES, "footprints+size_map": MAP_READOUT_FEATURES,
-            "footprints+size_map_per_target": MAP_READOUT_FEATURES}
-READOUT_OPTIONAL = {"footprints+size_map_per_target": MAP_SIZE_STATS}
+# statistics, or those and the same statistics of the size map
+READOUTS = {"footprints": READOUT_FEATURES, "footprints+size_map": MAP_READOUT_FEATURES}

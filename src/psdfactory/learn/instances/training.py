@@ -42,7 +42,7 @@ from . import ARCH
 from .measure import SIEVE_METHODS
 from .net import DECODER, FULL_RES, TRUNK, InstanceMaps, build_instance_net
 from .scoring import f1_score, match_instances
-from .stats import READOUT_OPTIONAL, READOUTS
+from .stats import READOUTS
 from .targets import MAPS, boundary_weight, instance_loss, load_scenes, random_crops
 from .watershed import DEFAULT_POSTPROCESS, POSTPROCESS_GRID, postprocess
 
@@ -58,7 +58,7 @@ class InstanceSettings:
     photometric: float  # strength of the camera/light augmentation of the image (0 = off)
     lr: float  # Adam learning rate
     sieve_method: str  # min_feret | ellipse_minor | size_map
-    readout: str  # a name of READOUTS: what the calibrated read-out reads
+    readout: str  # footprints | footprints+size_map: what the calibrated read-out reads (READOUTS)
     tta: str  # none | flips | d4: the views of each image whose maps are averaged (TTA_VIEWS)
     auto_scale: bool  # the model's meta says predict reads photos at the grains' scale by default
 
@@ -106,26 +106,16 @@ def pick_postprocess(maps: np.ndarray, masks: list[np.ndarray], grid: dict = POS
     return best, best_f1
 
 
-def _signed(v: float | None, sign: bool = True) -> str:
-    return "n/a" if v is None else f"{v:+.3f}" if sign else f"{v:.3f}"
-
-
-def readout_for(stats: np.ndarray, y: np.ndarray, readout: str) -> dict:
-    """The read-out `readout` (a name of READOUTS: its features, and those a target reads only where
-    they pay, READOUT_OPTIONAL) of labels `y` from instance statistics `stats`."""
-    return fit_readout(stats, y, features=READOUTS[readout], optional=READOUT_OPTIONAL.get(readout, ()))
-
-
-def other_readouts(stats: np.ndarray, rows: list[dict], readout: str) -> dict:
-    """Read-outs `readout` of the scenes' labels in every other solid size definition (same weighting),
-    from the same instance statistics: the estimator reads its own definition and estimates these."""
+def other_readouts(stats: np.ndarray, rows: list[dict], features: tuple[str, ...]) -> dict:
+    """Read-outs of the scenes' labels in every other solid size definition (same weighting), from
+    the same instance statistics: the estimator reads its own definition and estimates these."""
     own = label_definition(rows)
     out = {}
     for d in SOLID_DEFINITIONS:
         cols = definition_targets(d, own["weighting"])
         y = np.array([[r.get(c, np.nan) for c in cols] for r in rows], dtype=float)
         if d != own["size_definition"] and np.isfinite(y).all():
-            out[d] = readout_for(stats, y, readout)
+            out[d] = fit_readout(stats, y, features=features)
     return out
 
 
@@ -173,8 +163,8 @@ def calibrate(model, device, settings: InstanceSettings, weights_used: str, resu
     # the training images, so its instances there are better than on new images; the validation
     # images show the read-out what the network makes of images it has not seen
     stats = np.stack([r.stats for r in train_res + val_res])
-    readout = readout_for(stats, np.concatenate([y_train, y_val]), settings.readout)
-    readouts = other_readouts(stats, train_rows + val_rows, settings.readout)
+    readout = fit_readout(stats, np.concatenate([y_train, y_val]), features=READOUTS[settings.readout])
+    readouts = other_readouts(stats, train_rows + val_rows, READOUTS[settings.readout])
     val_cal = regression_metrics(y_val, apply_readout(readout, np.stack([r.stats for r in val_res])))
     val_raw = regression_metrics(y_val, np.nan_to_num(np.stack([r.raw for r in val_res])))
     r2s = {k: " / ".join(f"{m[n]['r2']:.3f}" for n in NAMES) for k, m in (("cal", val_cal), ("raw", val_raw))}
@@ -182,11 +172,6 @@ def calibrate(model, device, settings: InstanceSettings, weights_used: str, resu
     logger.info(f"read-out ({settings.readout}) fitted on {len(train_rows)} training + {len(val_rows)} validation "
                 f"scenes (ridge {readout['alpha']:g}): cross-validated R² {cv}; validation R² calibrated (in the "
                 f"fit) {r2s['cal']}, raw {r2s['raw']} ({time.perf_counter() - t0:.0f} s)")
-    if readout.get("optional"):
-        logger.info("the size map's statistics per target (cross-validated R² gain ± one standard error): " + "; ".join(
-            f"{n} {'read' if u else 'left out'} ({_signed(g)} ± {_signed(e, sign=False)})"
-            for n, u, g, e in zip(NAMES, readout["optional_used"], readout["optional_gain"], readout["optional_se"],
-                                  strict=True)))
     if grain_px:
         logger.info(f"the validation images' grains look {grain_px['grain_px']:.1f} px (median over the images of the "
                     f"size map's area-weighted median), at most {grain_px['grain_px_max']:.1f} px, and at most "
