@@ -172,6 +172,39 @@ def test_network_maps_have_the_input_size(shape):
     assert out.shape == (shape[0], len(MAPS), *shape[2:]) and torch.isfinite(out).all()
 
 
+def test_glimpsed_particles_are_taught_as_background():
+    from psdfactory.learn.instances.targets import grain_mask
+
+    mask = np.zeros((40, 40), np.uint16)
+    yy, xx = np.mgrid[:40, :40]
+    mask[(yy - 15) ** 2 + (xx - 15) ** 2 <= 36] = 1  # a whole particle on top: 113 px of a 12-px disc
+    mask[30:32, 20:22] = 2  # 4 px of a particle 12 px across, deep in the bed: a glimpse
+    mask[0:2, 30:32] = 3  # 4 px of another, cut by the image's border
+    mask[25:28, 5:8] = 4  # 9 px with no particle row: kept as it is
+    ecd = np.array([np.nan, 12.0, 12.0, 12.0])  # per mask id
+    out = grain_mask(mask, ecd, 0.5)
+    assert set(np.unique(out)) == {0, 1, 3, 4}  # the glimpse is background, the rest unchanged
+    assert (out[mask != 2] == mask[mask != 2]).all() and out.dtype == mask.dtype
+    assert (grain_mask(mask, ecd, 0.0) == mask).all()  # 0: every visible particle is a grain
+    assert set(np.unique(grain_mask(mask, ecd, 1.0))) == {0, 3, 4}  # the disc shows 113 px of its 113.1
+
+
+def test_min_visible_share_is_in_the_training_slice_only_when_set():
+    """Off (the schema default, 0) it leaves every slice as it was, so no model trained before it retrains."""
+    import copy
+
+    from psdfactory.config import load_config, train_params
+    from psdfactory.learn.instances.training import InstanceSettings
+
+    cfg = load_config("config/config.yaml")
+    off = train_params(cfg, "instances")["settings"]
+    assert "min_visible_share" not in off and InstanceSettings.from_dict(off).min_visible_share == 0.0
+    cfg = copy.deepcopy(cfg)
+    cfg["train"]["instances"]["min_visible_share"] = 0.5
+    on = train_params(cfg, "instances")["settings"]
+    assert on["min_visible_share"] == 0.5 and InstanceSettings.from_dict(on).min_visible_share == 0.5
+
+
 def test_loss_is_lower_for_the_true_maps_and_crops_keep_targets_aligned():
     mask = discs((32, 32), [(10, 10), (10, 22), (24, 16)], 6)
     t = target_stack(mask, np.array([np.nan, 12.0, 12.0, 30.0]))[None]
@@ -446,6 +479,31 @@ def test_tiny_training_writes_a_plain_model_file(tiny):
     with open(model_path.parent / "history.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 1 and float(rows[0]["train_loss"]) > 0
+
+
+def test_training_on_the_grains_in_view_teaches_glimpses_as_background(tiny, tmp_path):
+    """train.instances.min_visible_share: the targets (and the validation masks the post-processing is picked on)
+    hold the particles enough of which is in view; the training runs on them end to end."""
+    from psdfactory.learn.data import particles_by_scene, training_rows
+    from psdfactory.learn.instances.targets import load_scenes
+    from psdfactory.learn.train import train_from_params
+    from psdfactory.manifest import PARTICLE_READ_COLUMNS
+
+    root, _, summary = tiny
+    train_rows, _, _ = training_rows(root, ["tiny"])
+    particles = particles_by_scene(root, ["tiny"], PARTICLE_READ_COLUMNS + ("ecd_mm",))
+    fg = {share: float(load_scenes(root, train_rows, particles, share)[1][:, 0].sum()) for share in (0.0, 0.5, 1.0)}
+    assert fg[0.0] >= fg[0.5] >= fg[1.0] and fg[0.0] > fg[1.0]  # fewer grains taught the more must be in view
+    assert fg[0.0] == float(load_scenes(root, train_rows, particles)[1][:, 0].sum())
+    with pytest.raises(PsdError, match="min_visible_share"):
+        load_scenes(root, train_rows, None, 0.5)
+    cfg = tiny_config(n_scenes=2, count=[15, 25])
+    cfg["render"]["resolution"] = 48
+    params = tiny_instance_params(cfg)
+    params["settings"]["min_visible_share"] = 0.5
+    train_from_params(params, root, tmp_path / "instances")
+    meta = torch.load(tmp_path / "instances" / "model.pt", map_location="cpu", weights_only=True)["meta"]
+    assert meta["readout"]["n_scenes"] == 2 and set(meta["postprocess"]) >= {"threshold", "h"}
 
 
 def test_a_trained_network_calibrated_again_under_other_views_keeps_its_weights(tiny, tmp_path):

@@ -706,6 +706,9 @@ def main_training_dataset(config: dict) -> str:
 # train.<arch> settings that change the model's meta only (how predict reads with it), not what it learns: runs
 # that differ in them are one recipe (the training's fingerprint, report.same_recipe, bench/seed_spread.py)
 META_ONLY_SETTINGS = ("auto_scale",)
+# train.<arch> settings added after models were trained, and their values that change nothing: in a training's
+# slice only when set otherwise (`train_params`)
+SETTINGS_OFF = {"auto_scale": False, "min_visible_share": 0.0}
 # train.<arch> settings that change what a trained network's maps are made into (the instance estimator's calibration
 # after training: its views, its sieve-size method, its read-out), not the network: runs that differ only in them
 # share their network (bench/seed_spread.py --recalibrate-from)
@@ -747,7 +750,9 @@ def train_params(config: dict, arch: str) -> dict:
         datasets = out["settings"].pop("datasets", None)
         if datasets is not None:  # its own training data (train.<arch>.datasets) overrides train.datasets
             out["datasets"] = list(datasets)
-        if out["settings"].get("auto_scale") is False:  # in the slice only when on, as train.crop: the slices
-            del out["settings"]["auto_scale"]  # of before it stay as they were, and nothing retrains
+        for key, off in SETTINGS_OFF.items():  # in the slice only when on, as train.crop: the slices of before
+            v = out["settings"].get(key)
+            if v is not None and v == off and isinstance(v, bool) == isinstance(off, bool):
+                del out["settings"][key]  # them stay as they were, and nothing retrains
     return out
 

@@ -77,6 +77,27 @@ def instance_targets(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return fg, boundary, dist
 
 
+def grain_mask(mask: np.ndarray, ecd_px_by_id: np.ndarray, min_share: float) -> np.ndarray:
+    """`mask` with the particles taught as grains only: those of which at least `min_share` of the
+    silhouette they would show alone (an area of π/4 × `ecd_px_by_id`², the resting particle's
+    equivalent-circle diameter in pixels, per mask id) is in view, and those cut by the image's
+    border (their silhouette is partly outside the image, not hidden). The rest — glimpses of
+    particles deep in a bed, seen through the gaps between the ones on top — become background,
+    as a person outlining the grains of a photo leaves them out. `min_share` 0 keeps every one."""
+    if min_share <= 0 or not mask.any():
+        return mask
+    visible = np.bincount(mask.ravel(), minlength=len(ecd_px_by_id))
+    ids = np.arange(len(visible))
+    full = np.full(len(visible), np.nan)
+    n = min(len(visible), len(ecd_px_by_id))
+    full[:n] = np.pi / 4.0 * np.asarray(ecd_px_by_id[:n], float) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        glimpsed = (ids > 0) & (visible > 0) & (visible < min_share * full)  # NaN (no particle row): kept
+    border = np.unique(np.concatenate([mask[0], mask[-1], mask[:, 0], mask[:, -1]]))
+    glimpsed[border] = False
+    return np.where(glimpsed[mask], 0, mask).astype(mask.dtype)
+
+
 def target_stack(mask: np.ndarray, size_px_by_id: np.ndarray | None = None) -> torch.Tensor:
     """The targets of one mask as a float32 C×H×W tensor in the order of MAPS: foreground,
     boundary, distance, and with `size_px_by_id` (true size in pixels per mask id) the size."""
@@ -176,24 +197,42 @@ def zoom(image: torch.Tensor, target: torch.Tensor, size: int) -> tuple[torch.Te
 # data
 
 
-def load_scenes(results_root: Path, rows: list[dict],
-                particles: dict[str, dict[str, np.ndarray]] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def load_scenes(results_root: Path, rows: list[dict], particles: dict[str, dict[str, np.ndarray]] | None = None,
+                min_visible_share: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """uint8 N×3×H×W images and float32 N×C×H×W targets (MAPS; the size map with `particles`,
-    `data.particles_by_scene` of the rows' datasets) of manifest rows (all one size)."""
+    `data.particles_by_scene` of the rows' datasets) of manifest rows (all one size); with
+    `min_visible_share`, of the grains `grain_mask` keeps (`particles` must hold ``ecd_mm``)."""
     xs, ts = [], []
     for r in rows:
         img = read_png(Path(results_root) / r["image_path"])
-        mask = read_png(Path(results_root) / r["mask_path"])
+        mask = read_scene_mask(results_root, r, particles, min_visible_share)
         if img.shape[:2] != mask.shape:
             raise PsdError(f"{r['scene_id']}: image {img.shape[:2]} and mask {mask.shape} differ in size")
         sizes = None
         if particles is not None:
-            if r["scene_id"] not in particles:
-                raise PsdError(f"the particle manifest has no rows for {r['scene_id']}")
-            sizes = sizes_px_by_id(particles[r["scene_id"]], float(r["mm_per_px"]))
+            sizes = sizes_px_by_id(_scene_particles(particles, r), float(r["mm_per_px"]))
         xs.append(torch.from_numpy(np.array(img, dtype=np.uint8, copy=True)).permute(2, 0, 1))
         ts.append(target_stack(mask, sizes))
     if len({tuple(x.shape) for x in xs}) > 1:
         raise PsdError("the instance estimator trains on images of one size; this dataset mixes sizes")
     return torch.stack(xs), torch.stack(ts)
 
+
+def _scene_particles(particles: dict[str, dict[str, np.ndarray]], row: dict) -> dict[str, np.ndarray]:
+    if row["scene_id"] not in particles:
+        raise PsdError(f"the particle manifest has no rows for {row['scene_id']}")
+    return particles[row["scene_id"]]
+
+
+def read_scene_mask(results_root: Path, row: dict, particles: dict[str, dict[str, np.ndarray]] | None,
+                    min_visible_share: float) -> np.ndarray:
+    """A manifest row's instance mask; with `min_visible_share` > 0, of the grains `grain_mask` keeps."""
+    mask = read_png(Path(results_root) / row["mask_path"])
+    if min_visible_share <= 0:
+        return mask
+    if particles is None:
+        raise PsdError("teaching glimpsed particles as background (train.instances.min_visible_share) needs "
+                       "the particle manifest")
+    ecd_px = sizes_px_by_id({**(p := _scene_particles(particles, row)), "size_mm": p["ecd_mm"]},
+                            float(row["mm_per_px"]))
+    return grain_mask(mask, ecd_px, min_visible_share)

@@ -17,8 +17,8 @@ import numpy as np
 import torch
 
 from ... import PsdError, __version__
-from ...config import AUTO_SCALE_PROBE, config_fields, network_recipe, training_recipe
-from ...io import read_png
+from ...config import AUTO_SCALE_PROBE, SETTINGS_OFF, config_fields, network_recipe, training_recipe
+from ...manifest import PARTICLE_READ_COLUMNS
 from ...psd import NAMES, SOLID_DEFINITIONS, TARGETS, definition_targets
 from ..augment import TTA_VIEWS, photometric
 from ..data import label_definition, normalise, particles_by_scene, training_rows
@@ -43,7 +43,7 @@ from .measure import SIEVE_METHODS
 from .net import DECODER, FULL_RES, TRUNK, InstanceMaps, build_instance_net
 from .scoring import f1_score, match_instances
 from .stats import READOUTS
-from .targets import MAPS, boundary_weight, instance_loss, load_scenes, random_crops
+from .targets import MAPS, boundary_weight, instance_loss, load_scenes, random_crops, read_scene_mask
 from .watershed import DEFAULT_POSTPROCESS, POSTPROCESS_GRID, postprocess
 
 logger = logging.getLogger(__name__)
@@ -61,11 +61,12 @@ class InstanceSettings:
     readout: str  # footprints | footprints+size_map: what the calibrated read-out reads (READOUTS)
     tta: str  # none | flips | d4: the views of each image whose maps are averaged (TTA_VIEWS)
     auto_scale: bool  # the model's meta says predict reads photos at the grains' scale by default
+    min_visible_share: float  # particles less of whose silhouette is in view are taught as background (grain_mask)
 
     @classmethod
     def from_dict(cls, d: dict) -> InstanceSettings:
-        # auto_scale is in a slice only when on (config.train_params): absent means off
-        s = cls(**config_fields(cls, {"auto_scale": False, **d}, "train.instances"))
+        # SETTINGS_OFF are in a slice only when on (config.train_params): absent means off
+        s = cls(**config_fields(cls, {**SETTINGS_OFF, **d}, "train.instances"))
         if s.sieve_method not in SIEVE_METHODS:
             raise PsdError(f"train.instances.sieve_method must be one of {', '.join(SIEVE_METHODS)}")
         if s.readout not in READOUTS:
@@ -86,6 +87,14 @@ def val_loss(model, images, targets, device, precision, pw: float, batch: int = 
                 out = model(x)
             total += float(instance_loss(out, targets[i : i + batch].to(device), pw)[0]) * len(x)
     return total / max(len(images), 1)
+
+
+def grain_particles(results_root: Path, rows: list[dict], settings: InstanceSettings) -> dict | None:
+    """The particle rows `read_scene_mask` needs to keep the grains `settings` teaches, of the rows' datasets;
+    None where every visible particle is a grain."""
+    if settings.min_visible_share <= 0:
+        return None
+    return particles_by_scene(results_root, sorted({r["dataset"] for r in rows}), ("particle_id", "ecd_mm"))
 
 
 def pick_postprocess(maps: np.ndarray, masks: list[np.ndarray], grid: dict = POSTPROCESS_GRID) -> tuple[dict, float]:
@@ -151,7 +160,9 @@ def calibrate(model, device, settings: InstanceSettings, weights_used: str, resu
             "postprocess": dict(DEFAULT_POSTPROCESS), "tta": settings.tta}
     est = estimator(meta, torch_runner(InstanceMaps(model), device), model)  # as evaluate and predict run it
     val_maps = est.all_maps(x_val)
-    val_masks = [read_png(Path(results_root) / r["mask_path"]) for r in val_rows]
+    # the grains it was taught (train.instances.min_visible_share): what its post-processing is picked to find
+    grains = grain_particles(results_root, val_rows, settings)
+    val_masks = [read_scene_mask(results_root, r, grains, settings.min_visible_share) for r in val_rows]
     post, val_f1 = pick_postprocess(val_maps, val_masks)
     est.post = post
     grain_px = grain_sizes(est, x_val, val_maps)  # how large its grains look: predict's automatic scale
@@ -214,9 +225,10 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     device = pick_device(params.device)
     train_rows, val_rows, rows = training_rows(results_root, params.datasets)
     t_load = time.perf_counter()
-    particles = particles_by_scene(results_root, params.datasets)  # the size map's targets
-    x_train, t_train = load_scenes(results_root, train_rows, particles)
-    x_val, t_val = load_scenes(results_root, val_rows, particles)
+    particles = particles_by_scene(results_root, params.datasets, PARTICLE_READ_COLUMNS + ("ecd_mm",)
+                                   if settings.min_visible_share > 0 else None)  # the size map's targets
+    x_train, t_train = load_scenes(results_root, train_rows, particles, settings.min_visible_share)
+    x_val, t_val = load_scenes(results_root, val_rows, particles, settings.min_visible_share)
     crop = min(int(params.input_size), *x_train.shape[-2:])
     pw = boundary_weight(t_train)
     model, weights_used = build_instance_net(params.pretrained)
