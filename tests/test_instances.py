@@ -199,10 +199,21 @@ def test_min_visible_share_is_in_the_training_slice_only_when_set():
     cfg = load_config("config/config.yaml")
     off = train_params(cfg, "instances")["settings"]
     assert "min_visible_share" not in off and InstanceSettings.from_dict(off).min_visible_share == 0.0
+    # nor the fingerprint of a training that leaves it off: a checkpoint written before it still resumes
+    from dataclasses import asdict
+
+    from psdfactory.config import network_recipe, training_recipe
+
+    full = {**train_params(cfg, "instances"), "settings": asdict(InstanceSettings.from_dict(off))}
+    assert full["settings"]["min_visible_share"] == 0.0
+    before = {**full, "settings": {k: v for k, v in full["settings"].items() if k != "min_visible_share"}}
+    assert training_recipe(full) == training_recipe(before) and network_recipe(full) == network_recipe(before)
     cfg = copy.deepcopy(cfg)
     cfg["train"]["instances"]["min_visible_share"] = 0.5
     on = train_params(cfg, "instances")["settings"]
     assert on["min_visible_share"] == 0.5 and InstanceSettings.from_dict(on).min_visible_share == 0.5
+    set_on = {**full, "settings": asdict(InstanceSettings.from_dict(on))}
+    assert network_recipe(set_on) != network_recipe(full)  # set, it is another network
 
 
 def test_loss_is_lower_for_the_true_maps_and_crops_keep_targets_aligned():
@@ -504,6 +515,16 @@ def test_training_on_the_grains_in_view_teaches_glimpses_as_background(tiny, tmp
     train_from_params(params, root, tmp_path / "instances")
     meta = torch.load(tmp_path / "instances" / "model.pt", map_location="cpu", weights_only=True)["meta"]
     assert meta["readout"]["n_scenes"] == 2 and set(meta["postprocess"]) >= {"threshold", "h"}
+    assert meta["min_visible_share"] == 0.5
+    # calibrated again, it keeps the grains it learnt: another share is another network
+    from psdfactory.learn.instances.training import recalibrate
+
+    settings = {k: v for k, v in params["settings"].items() if k not in ("epochs", "datasets")}
+    other = InstanceSettings.from_dict({**settings, "min_visible_share": 0})
+    with pytest.raises(PsdError, match="min_visible_share 0.5, not 0"):
+        recalibrate(tmp_path / "instances" / "model.pt", other, root, tmp_path / "again.pt", InstanceEstimator, "cpu")
+    with pytest.raises(PsdError, match="ecd_mm"):
+        load_scenes(root, train_rows, particles_by_scene(root, ["tiny"]), 0.5)
 
 
 def test_a_trained_network_calibrated_again_under_other_views_keeps_its_weights(tiny, tmp_path):

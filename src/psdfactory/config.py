@@ -715,11 +715,22 @@ SETTINGS_OFF = {"auto_scale": False, "min_visible_share": 0.0}
 CALIBRATION_SETTINGS = ("tta", "sieve_method", "readout")
 
 
+def settings_set(settings: dict) -> dict:
+    """train.<arch> settings without those of SETTINGS_OFF at their off value: what a slice or a training's
+    fingerprint holds, so that adding such a setting changes neither for the runs that do not set it."""
+    def off(k, v) -> bool:
+        o = SETTINGS_OFF.get(k, ...)
+        return o is not ... and v == o and isinstance(v, bool) == isinstance(o, bool)
+
+    return {k: v for k, v in settings.items() if not off(k, v)}
+
+
 def training_recipe(params: dict) -> dict:
-    """A `train_params` slice without the settings that change the model's meta only (META_ONLY_SETTINGS)."""
+    """A `train_params` slice without the settings that change the model's meta only (META_ONLY_SETTINGS),
+    and without those of SETTINGS_OFF left off (`settings_set`)."""
     out = dict(params)
     if isinstance(out.get("settings"), dict):
-        out["settings"] = {k: v for k, v in out["settings"].items() if k not in META_ONLY_SETTINGS}
+        out["settings"] = {k: v for k, v in settings_set(out["settings"]).items() if k not in META_ONLY_SETTINGS}
     return out
 
 
@@ -750,9 +761,7 @@ def train_params(config: dict, arch: str) -> dict:
         datasets = out["settings"].pop("datasets", None)
         if datasets is not None:  # its own training data (train.<arch>.datasets) overrides train.datasets
             out["datasets"] = list(datasets)
-        for key, off in SETTINGS_OFF.items():  # in the slice only when on, as train.crop: the slices of before
-            v = out["settings"].get(key)
-            if v is not None and v == off and isinstance(v, bool) == isinstance(off, bool):
-                del out["settings"][key]  # them stay as they were, and nothing retrains
+        # SETTINGS_OFF in the slice only when on, as train.crop: the slices of before them stay as they were,
+        out["settings"] = settings_set(out["settings"])  # and nothing retrains
     return out
 

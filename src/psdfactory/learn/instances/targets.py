@@ -233,6 +233,9 @@ def read_scene_mask(results_root: Path, row: dict, particles: dict[str, dict[str
     if particles is None:
         raise PsdError("teaching glimpsed particles as background (train.instances.min_visible_share) needs "
                        "the particle manifest")
-    ecd_px = sizes_px_by_id({**(p := _scene_particles(particles, row)), "size_mm": p["ecd_mm"]},
-                            float(row["mm_per_px"]))
+    p = _scene_particles(particles, row)
+    if "ecd_mm" not in p:
+        raise PsdError("teaching glimpsed particles as background (train.instances.min_visible_share) needs the "
+                       "particles' ecd_mm (data.particles_by_scene with that column)")
+    ecd_px = sizes_px_by_id({**p, "size_mm": p["ecd_mm"]}, float(row["mm_per_px"]))
     return grain_mask(mask, ecd_px, min_visible_share)

@@ -301,6 +301,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         "maps": list(MAPS),
         **calib,
         "auto_scale": settings.auto_scale,  # predict's default reading (--auto-scale / --no-auto-scale)
+        "min_visible_share": settings.min_visible_share,  # the grains it learnt (train.instances)
         "boundary_pos_weight": pw,
         "params": asdict(params),
         "n_parameters": n_params,
@@ -336,6 +337,10 @@ def recalibrate(model_path: Path, settings: InstanceSettings, results_root: Path
     if meta.get("arch") != ARCH or not isinstance(meta.get("params"), dict) or "datasets" not in meta["params"]:
         raise PsdError(f"{model_path} is not an instance estimator trained by this version (arch "
                        f"{meta.get('arch')!r}, no params.datasets in its meta): train it again")
+    trained = float(meta.get("min_visible_share", 0.0))  # absent: trained before the setting, on every particle
+    if trained != settings.min_visible_share:
+        raise PsdError(f"{model_path} was trained on the particles with min_visible_share {trained:g}, not "
+                       f"{settings.min_visible_share:g}: that changes what the network learns, so train it again")
     model.eval()
     train_rows, val_rows, _ = training_rows(results_root, meta["params"]["datasets"])
     x_train, _ = load_scenes(results_root, train_rows)
