@@ -719,8 +719,7 @@ def settings_set(settings: dict) -> dict:
     """train.<arch> settings without those of SETTINGS_OFF at their off value: what a slice or a training's
     fingerprint holds, so that adding such a setting changes neither for the runs that do not set it."""
     def off(k, v) -> bool:
-        o = SETTINGS_OFF.get(k, ...)
-        return o is not ... and v == o and isinstance(v, bool) == isinstance(o, bool)
+        return k in SETTINGS_OFF and v == SETTINGS_OFF[k] and isinstance(v, bool) == isinstance(SETTINGS_OFF[k], bool)
 
     return {k: v for k, v in settings.items() if not off(k, v)}
 
