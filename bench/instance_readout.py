@@ -55,7 +55,7 @@ def main() -> None:
     from psdfactory.learn.evaluate import eval_rows
     from psdfactory.learn.instances.estimator import InstanceEstimator
     from psdfactory.learn.instances.stats import READOUTS
-    from psdfactory.learn.instances.training import other_readouts
+    from psdfactory.learn.instances.training import other_readouts, readout_features
     from psdfactory.learn.metrics import r2_scores
     from psdfactory.learn.readout import apply_readout, fit_readout
     from psdfactory.learn.runtime import load_estimator, save_model
@@ -115,8 +115,8 @@ def main() -> None:
         print(f"tta {tta} ({len(TTA_VIEWS[tta])} views): instance statistics of {len(fit_y['train+val'])} training "
               f"and {sum(len(y) for _, y in scored.values())} scored images in {time.perf_counter() - t0:.0f} s")
         for fit in fit_x:
-            for readout, features in READOUTS.items():
-                ro = fit_readout(fit_x[fit], fit_y[fit], features=features)
+            for readout in READOUTS:
+                ro = fit_readout(fit_x[fit], fit_y[fit], **readout_features(readout))
                 r2 = {d: r2_scores(y, apply_readout(ro, x)).tolist() for d, (x, y) in scored.items()}
                 out["rows"].append({"tta": tta, "readout": readout, "fitted_on": fit, "n_scenes": ro["n_scenes"],
                                     "cv_r2": ro["cv_r2"], "r2": r2})
@@ -125,7 +125,7 @@ def main() -> None:
                     kept = {k: v for k, v in meta.items() if k not in ("val", "calibration")}  # the old read-out's
                     save_model(path, loaded.net, {
                         **kept, "tta": tta, "readout_features": readout, "readout": ro,
-                        "readouts": other_readouts(fit_x[fit], train_rows + val_rows, features)})
+                        "readouts": other_readouts(fit_x[fit], train_rows + val_rows, readout)})
                     print(f"wrote {path}")
 
     def cell(r: list[float], c: list[float] | None) -> str:

@@ -298,6 +298,37 @@ def test_readout_recovers_a_linear_map_and_orders_the_targets():
 
 
 
+def test_a_readout_reads_the_size_map_for_the_targets_it_names_only():
+    from psdfactory.learn.instances.estimator import readout_problems
+    from psdfactory.learn.instances.stats import MAP_READOUT_FEATURES, READOUT_TARGET_FEATURES
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(60, len(STAT_NAMES)))
+    y = x[:, :3] * 0.3 + x[:, [STAT_NAMES.index("map_d90_mm")] * 3] * 0.5 + [3.0, 8.0, 14.0]
+    name = "footprints+size_map_d10_d50"
+    features, per_target = READOUTS[name], READOUT_TARGET_FEATURES[name]
+    assert features == MAP_READOUT_FEATURES and per_target[2] == READOUT_FEATURES
+    ro = fit_readout(x, y, alphas=(1e-3,), features=features, target_features=per_target)
+    assert json.loads(json.dumps(ro)) == ro
+    assert ro["target_features"] == [list(t) for t in per_target] and ro["features"] == list(features)
+    w = np.asarray(ro["weights"])
+    on_map = [1 + features.index(f) for f in features if f.startswith("map_")]
+    assert np.abs(w[on_map, :2]).max() > 0.1 and (w[on_map, 2] == 0).all()  # d10, d50 read the map; d90 not
+    # each group is the read-out of its own statistics: d90 as the footprints alone read it, d10/d50 as the map
+    foot = fit_readout(x, y, alphas=(1e-3,), features=READOUT_FEATURES)
+    both = fit_readout(x, y, alphas=(1e-3,), features=features)
+    kept = [0, *(1 + features.index(f) for f in READOUT_FEATURES)]
+    assert w[kept, 2] == pytest.approx(np.asarray(foot["weights"])[:, 2])
+    assert w[:, :2] == pytest.approx(np.asarray(both["weights"])[:, :2])
+    assert ro["cv_r2"][2] == pytest.approx(foot["cv_r2"][2]) and ro["cv_r2"][:2] == pytest.approx(both["cv_r2"][:2])
+    assert readout_problems({"postprocess": {"threshold": 0.5, "h": 0.1, "min_distance": 3, "min_area_px": 4},
+                             "maps": list(MAPS), "sieve_method": "min_feret", "readout": ro}) == []
+    bad = {**ro, "target_features": [["d10_mm"], ["not_a_stat"], ["d90_mm"]]}
+    assert any("target_features" in p for p in readout_problems({"maps": list(MAPS), "readout": bad}))
+    with pytest.raises(ValueError, match="not among its features"):
+        fit_readout(x, y, features=READOUT_FEATURES, target_features=per_target)
+
+
 def test_a_readout_names_the_statistics_it_would_extrapolate_from():
     from psdfactory.learn.readout import DOMAIN_MARGIN, outside_domain
 
@@ -608,42 +639,52 @@ def test_training_again_with_other_views_calibrates_the_finished_network_without
 
 
 def test_readout_of_footprints_and_size_map(tiny, tmp_path, few_grains_read):
-    """train.instances.readout picks the read-out's statistics: the size map's too, or not."""
+    """train.instances.readout picks the read-out's statistics: the size map's too, for every target or for d10
+    and d50 only, or not."""
+    from psdfactory.learn.capability import detect
+    from psdfactory.learn.instances.estimator import readout_problems
+    from psdfactory.learn.instances.stats import READOUT_TARGET_FEATURES
     from psdfactory.learn.train import train_from_params
 
     root, model_path, _ = tiny
     meta = torch.load(model_path, map_location="cpu", weights_only=True)["meta"]
+    assert meta["readout_features"] == "footprints"
     cfg = tiny_config(n_scenes=2, count=[15, 25])
     cfg["render"]["resolution"] = 48
     params = tiny_instance_params(cfg)
-    other = next(k for k in READOUTS if k != meta["readout_features"])
-    params["settings"] = {**params["settings"], "readout": other}
-    summary = train_from_params(params, root, tmp_path / "other")
-    feats = summary["readout"]["features"]
-    assert summary["readout_features"] == other and feats == list(READOUTS[other])
-    assert any(f.startswith("map_") for f in feats) == (other == "footprints+size_map")
     with pytest.raises(PsdError, match="train.instances.readout"):
         InstanceSettings.from_dict({**params["settings"], "readout": "pixels"})
+    assert not any(f.startswith("map_") for f in meta["readout"]["features"])
+    for other in ("footprints+size_map", "footprints+size_map_d10_d50"):
+        params["settings"] = {**params["settings"], "readout": other}
+        out = tmp_path / other.replace("+", "-")
+        summary = train_from_params(params, root, out)
+        ro = summary["readout"]
+        assert summary["readout_features"] == other and ro["features"] == list(READOUTS[other])
+        assert any(f.startswith("map_") for f in ro["features"])
+        per_target = READOUT_TARGET_FEATURES[other]
+        assert ro.get("target_features", [list(per_target[0])] * 3) == [list(t) for t in per_target]
+        map_rows = [1 + ro["features"].index(f) for f in ro["features"] if f.startswith("map_")]
+        reads_map = [any(f.startswith("map_") for f in t) for t in per_target]
+        assert [bool(np.any(np.asarray(ro["weights"])[map_rows, t])) for t in range(3)] == reads_map
+        assert all(summary["readouts"][d].get("target_features") == ro.get("target_features")
+                   for d in summary["readouts"])  # the other size definitions read as their own
 
-    # the size map's read-out in deployment: predict reads it the same through PyTorch and ONNX;
-    # a network without a size map cannot carry it
-    from psdfactory.learn.capability import detect
-    from psdfactory.learn.instances.estimator import readout_problems
+        # the size map's read-out in deployment: predict reads it the same through PyTorch and ONNX;
+        # a network without a size map cannot carry it
+        assert readout_problems(summary) == []
+        assert any("size map" in p for p in readout_problems({**summary, "maps": ["foreground", "boundary",
+                                                                                  "distance"]}))
+        if detect().onnxruntime:
+            from psdfactory.deploy.export import export
+            from psdfactory.deploy.predict import predict_files
 
-    with_map = summary if other == "footprints+size_map" else meta
-    assert readout_problems(with_map) == []
-    assert any("size map" in p for p in readout_problems({**with_map, "maps": ["foreground", "boundary", "distance"]}))
-    if detect().onnxruntime:
-        from psdfactory.deploy.export import export
-        from psdfactory.deploy.predict import predict_files
-
-        path = (tmp_path / "other" if other == "footprints+size_map" else model_path.parent) / "model.pt"
-        export(path, tmp_path / "onnx")
-        img = str(root / "tiny" / "scenes" / "tiny-000001" / "image.png")
-        ref = predict_files(path, [img])[0]
-        got = predict_files(tmp_path / "onnx" / "model.onnx", [img])[0]
-        keys = ("d10_mm", "d50_mm", "d90_mm")
-        assert not got["error"] and [got[k] for k in keys] == pytest.approx([ref[k] for k in keys], abs=1e-3)
+            export(out / "model.pt", out / "onnx")
+            img = str(root / "tiny" / "scenes" / "tiny-000001" / "image.png")
+            ref = predict_files(out / "model.pt", [img])[0]
+            got = predict_files(out / "onnx" / "model.onnx", [img])[0]
+            keys = ("d10_mm", "d50_mm", "d90_mm")
+            assert not got["error"] and [got[k] for k in keys] == pytest.approx([ref[k] for k in keys], abs=1e-3)
 
 
 def test_precision_auto_times_bf16_against_fp32_and_trains_in_the_faster(tiny, tmp_path, monkeypatch):

@@ -32,7 +32,8 @@ def readout_columns(x: np.ndarray, features: list[str] | tuple[str, ...]) -> np.
 
 
 def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOUT_ALPHAS, folds: int = 5,
-                features: tuple[str, ...] = READOUT_FEATURES) -> dict:
+                features: tuple[str, ...] = READOUT_FEATURES,
+                target_features: tuple[tuple[str, ...], ...] | None = None) -> dict:
     """A ridge read-out of the labels (N×3) from instance statistics (N×len(STAT_NAMES); the
     columns `features` are used), as plain lists: NaN features imputed with the training means,
     features standardised, the ridge strength (× N) picked by k-fold cross-validated mean R²
@@ -42,7 +43,13 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
     R² that picks the ridge strength is of the linear fit alone (a held reading differs from it
     only where a scene's residual crosses the extreme ratios, at most a hair where it was fitted).
     The ratios are to the number-weighted visible sizes whatever the labels' weighting: for
-    volume-weighted labels they are wider, the hold looser."""
+    volume-weighted labels they are wider, the hold looser.
+
+    `target_features` (one tuple of names per target, each within `features`; default: all of
+    them for every target): what each target reads. Targets that read the same statistics are
+    fitted together, each such group with its own ridge strength; a target's weights on the
+    statistics it does not read are zero, so the read-out applies as any other. Such a read-out
+    records `target_features`, and `alpha` per target."""
     y = np.asarray(y, float)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = y / readout_columns(x, VISIBLE)  # how much the labels exceed the visible grains' sizes
@@ -52,20 +59,44 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
     fill = np.nanmean(np.where(np.isfinite(x), x, np.nan), axis=0) if len(x) else np.zeros(x.shape[1])
     fill = np.where(np.isfinite(fill), fill, 0.0)
     x = _impute(x, fill)
-    cv = {}
-    if len(x) >= MIN_SCENES:
-        for a in alphas:
-            cv[a] = cross_validated_r2(x, y, folds, ridge=a).tolist()
-        alpha = max(cv, key=lambda a: np.nanmean(cv[a]))
-    else:
-        alpha = 1.0
-    mu, sd, w = ridge_fit(x, y, alpha)
-    return {"features": list(features), "impute": fill.tolist(), "mean": mu.tolist(), "scale": sd.tolist(),
-            "weights": w.tolist(), "alpha": float(alpha), "n_scenes": int(len(x)),
-            "lo": x.min(axis=0).tolist() if len(x) else None, "hi": x.max(axis=0).tolist() if len(x) else None,
-            "ratio_lo": np.nanmin(ratio, axis=0).tolist() if bounded else None,
-            "ratio_hi": np.nanmax(ratio, axis=0).tolist() if bounded else None,
-            "cv_r2": [float(v) for v in cv[alpha]] if cv else None}
+    features = list(features)
+    groups: dict[tuple[str, ...], list[int]] = {}  # the statistics read -> the targets that read them
+    for t, fs in enumerate(target_features or [tuple(features)] * y.shape[1]):
+        if unknown := [f for f in fs if f not in features]:
+            raise ValueError(f"target {t} of the read-out reads {unknown}, which are not among its features")
+        groups.setdefault(tuple(fs), []).append(t)
+    mu, sd, _ = ridge_fit(x, y, 1.0)  # the standardisation: per feature, the same in every group
+    weights = np.zeros((len(features) + 1, y.shape[1]))
+    alpha_t, cv_t = np.ones(y.shape[1]), np.full(y.shape[1], np.nan)
+    for fs, ts in groups.items():
+        cols = [features.index(f) for f in fs]
+        alpha, cv = _ridge_strength(x[:, cols], y[:, ts], alphas, folds)
+        weights[np.ix_([0, *(c + 1 for c in cols)], ts)] = ridge_fit(x[:, cols], y[:, ts], alpha)[2]
+        alpha_t[ts] = alpha
+        if cv is not None:
+            cv_t[ts] = cv
+    uniform = len(groups) == 1
+    out = {"features": features, "impute": fill.tolist(), "mean": mu.tolist(), "scale": sd.tolist(),
+           "weights": weights.tolist(), "alpha": float(alpha_t[0]) if uniform else alpha_t.tolist(),
+           "n_scenes": int(len(x)),
+           "lo": x.min(axis=0).tolist() if len(x) else None, "hi": x.max(axis=0).tolist() if len(x) else None,
+           "ratio_lo": np.nanmin(ratio, axis=0).tolist() if bounded else None,
+           "ratio_hi": np.nanmax(ratio, axis=0).tolist() if bounded else None,
+           "cv_r2": [float(v) for v in cv_t] if len(x) >= MIN_SCENES else None}
+    if not uniform:
+        out["target_features"] = [list(fs) for fs in target_features]
+    return out
+
+
+def _ridge_strength(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...],
+                    folds: int) -> tuple[float, np.ndarray | None]:
+    """The ridge strength (of `alphas`) of best k-fold cross-validated mean R² over the targets `y`,
+    and its R² per target; (1.0, None) with fewer than MIN_SCENES scenes."""
+    if len(x) < MIN_SCENES:
+        return 1.0, None
+    cv = {a: cross_validated_r2(x, y, folds, ridge=a) for a in alphas}
+    best = max(cv, key=lambda a: np.nanmean(cv[a]))
+    return best, cv[best]
 
 
 def apply_readout(readout: dict, x: np.ndarray) -> np.ndarray:

@@ -24,7 +24,8 @@ it, then read the PSD off the measured particles.
   validation masks, and a ridge read-out from `particles.instance_stats` to the labels is fitted
   on the training and validation scenes' *predicted* instances (the camera cannot see hidden
   fines; the read-out learns what they add), reading the statistics ``train.instances.readout``
-  names (READOUTS: the footprints', and with ``footprints+size_map`` the size map's too). All of
+  names (READOUTS: the footprints', with ``footprints+size_map`` the size map's too, with
+  ``footprints+size_map_d10_d50`` the size map's for d10 and d50 only). All of
   it is stored as plain lists in the model file's meta.
 - **Inference** (`InstanceEstimator`): full image → maps (with ``train.instances.tta``
   averaged over views of the image — its quarter turns and mirror images, each turned back,

@@ -356,6 +356,10 @@ def _one_readout_problems(name: str, ro: object, maps: object, nums) -> list[str
           and all(nums(w, 3) for w in ro["weights"]))
     if not ok:
         return [f"{name} must hold impute/mean/scale ({nf} numbers each) and weights ({nf + 1} × 3)"]
+    per_target = ro.get("target_features")
+    if per_target is not None and not (isinstance(per_target, list) and len(per_target) == 3 and all(
+            isinstance(t, list) and t and all(f in feats for f in t) for t in per_target)):
+        return [f"{name}.target_features must be 3 lists of its features (one per target) or absent"]
     # optional (a read-out fitted before they were recorded has none): the fitted ranges and the ratios it is held to
     problems = [f"{name}.{k} must be {n} numbers or absent" for k, n in (("lo", nf), ("hi", nf), ("ratio_lo", 3),
                                                                          ("ratio_hi", 3))

@@ -142,6 +142,16 @@ def raw_psd(m: InstanceMeasurements, method: str) -> dict | None:
     return psd_from_instances(sieve_size(m, method), m.volume_mm3, include=include)
 
 
-# what the calibrated read-out may read (train.instances.readout): the instances' footprint
-# statistics, or those and the same statistics of the size map
-READOUTS = {"footprints": READOUT_FEATURES, "footprints+size_map": MAP_READOUT_FEATURES}
+# what the calibrated read-out may read (train.instances.readout), per target (d10, d50, d90): the
+# instances' footprint statistics, or those and the same statistics of the size map — for every target, or for
+# d10 and d50 only. The size map estimates each whole particle, hidden part included: what the fines, mostly hidden
+# in a bed, lack in view. The coarse grains lie on top, seen whole: their footprints measure d90 directly, and
+# there the map's estimate, only as good as the look the network trained on, is a liability on another look
+# (docs/experiments.md, 2026-11-29 and 2026-11-30).
+READOUT_TARGET_FEATURES = {
+    "footprints": (READOUT_FEATURES,) * 3,
+    "footprints+size_map": (MAP_READOUT_FEATURES,) * 3,
+    "footprints+size_map_d10_d50": (MAP_READOUT_FEATURES, MAP_READOUT_FEATURES, READOUT_FEATURES),
+}
+# every statistic a read-out reads, in the order of its weights
+READOUTS = {k: tuple(dict.fromkeys(f for t in v for f in t)) for k, v in READOUT_TARGET_FEATURES.items()}

@@ -42,7 +42,7 @@ from . import ARCH
 from .measure import SIEVE_METHODS
 from .net import DECODER, FULL_RES, TRUNK, InstanceMaps, build_instance_net
 from .scoring import f1_score, match_instances
-from .stats import READOUTS
+from .stats import READOUT_TARGET_FEATURES, READOUTS
 from .targets import MAPS, boundary_weight, instance_loss, load_scenes, random_crops, read_scene_mask
 from .watershed import DEFAULT_POSTPROCESS, POSTPROCESS_GRID, postprocess
 
@@ -58,7 +58,7 @@ class InstanceSettings:
     photometric: float  # strength of the camera/light augmentation of the image (0 = off)
     lr: float  # Adam learning rate
     sieve_method: str  # min_feret | ellipse_minor | size_map
-    readout: str  # footprints | footprints+size_map: what the calibrated read-out reads (READOUTS)
+    readout: str  # what the calibrated read-out reads, per target (READOUTS, READOUT_TARGET_FEATURES)
     tta: str  # none | flips | d4: the views of each image whose maps are averaged (TTA_VIEWS)
     auto_scale: bool  # the model's meta says predict reads photos at the grains' scale by default
     min_visible_share: float  # particles less of whose silhouette is in view are taught as background (grain_mask)
@@ -115,16 +115,22 @@ def pick_postprocess(maps: np.ndarray, masks: list[np.ndarray], grid: dict = POS
     return best, best_f1
 
 
-def other_readouts(stats: np.ndarray, rows: list[dict], features: tuple[str, ...]) -> dict:
+def readout_features(readout: str) -> dict:
+    """fit_readout's `features` and `target_features` for the read-out `readout` (READOUTS)."""
+    return {"features": READOUTS[readout], "target_features": READOUT_TARGET_FEATURES[readout]}
+
+
+def other_readouts(stats: np.ndarray, rows: list[dict], readout: str) -> dict:
     """Read-outs of the scenes' labels in every other solid size definition (same weighting), from
-    the same instance statistics: the estimator reads its own definition and estimates these."""
+    the same instance statistics (`readout`, a name of READOUTS): the estimator reads its own
+    definition and estimates these."""
     own = label_definition(rows)
     out = {}
     for d in SOLID_DEFINITIONS:
         cols = definition_targets(d, own["weighting"])
         y = np.array([[r.get(c, np.nan) for c in cols] for r in rows], dtype=float)
         if d != own["size_definition"] and np.isfinite(y).all():
-            out[d] = fit_readout(stats, y, features=features)
+            out[d] = fit_readout(stats, y, **readout_features(readout))
     return out
 
 
@@ -174,14 +180,15 @@ def calibrate(model, device, settings: InstanceSettings, weights_used: str, resu
     # the training images, so its instances there are better than on new images; the validation
     # images show the read-out what the network makes of images it has not seen
     stats = np.stack([r.stats for r in train_res + val_res])
-    readout = fit_readout(stats, np.concatenate([y_train, y_val]), features=READOUTS[settings.readout])
-    readouts = other_readouts(stats, train_rows + val_rows, READOUTS[settings.readout])
+    readout = fit_readout(stats, np.concatenate([y_train, y_val]), **readout_features(settings.readout))
+    readouts = other_readouts(stats, train_rows + val_rows, settings.readout)
     val_cal = regression_metrics(y_val, apply_readout(readout, np.stack([r.stats for r in val_res])))
     val_raw = regression_metrics(y_val, np.nan_to_num(np.stack([r.raw for r in val_res])))
     r2s = {k: " / ".join(f"{m[n]['r2']:.3f}" for n in NAMES) for k, m in (("cal", val_cal), ("raw", val_raw))}
     cv = " / ".join(f"{v:.3f}" for v in readout["cv_r2"]) if readout["cv_r2"] else "n/a (too few scenes)"
+    ridge = np.round(readout["alpha"], 6)  # per target where the targets read different statistics
     logger.info(f"read-out ({settings.readout}) fitted on {len(train_rows)} training + {len(val_rows)} validation "
-                f"scenes (ridge {readout['alpha']:g}): cross-validated R² {cv}; validation R² calibrated (in the "
+                f"scenes (ridge {ridge}): cross-validated R² {cv}; validation R² calibrated (in the "
                 f"fit) {r2s['cal']}, raw {r2s['raw']} ({time.perf_counter() - t0:.0f} s)")
     if grain_px:
         logger.info(f"the validation images' grains look {grain_px['grain_px']:.1f} px (median over the images of the "
