@@ -155,10 +155,12 @@ def main() -> None:
             fit_rows["train + wider"] = tr + va + wider[1]
         scored = {k: stats_of(base, rows) for k, (base, rows) in sets.items()}
         features = tuple(est.meta["readout"]["features"])
+        per_target = est.meta["readout"].get("target_features")  # a read-out per target reads as it was trained
         for fit in fits:
             for d in a.definitions:
                 y = labels(fit_rows[fit], d)
-                readouts = {"ridge (as trained)": (fit_readout(fit_x[fit], y, features=features), apply_readout),
+                readouts = {"ridge (as trained)": (fit_readout(fit_x[fit], y, features=features,
+                                                                     target_features=per_target), apply_readout),
                             "ratio": (fit_ratio(fit_x[fit], y, True), apply_ratio),
                             "ratio-nomap": (fit_ratio(fit_x[fit], y, False), apply_ratio)}
                 for name, (ro, apply) in readouts.items():

@@ -327,6 +327,13 @@ def test_a_readout_reads_the_size_map_for_the_targets_it_names_only():
     assert any("target_features" in p for p in readout_problems({"maps": list(MAPS), "readout": bad}))
     with pytest.raises(ValueError, match="not among its features"):
         fit_readout(x, y, features=READOUT_FEATURES, target_features=per_target)
+    with pytest.raises(ValueError, match="2 targets"):
+        fit_readout(x, y, features=features, target_features=per_target[:2])
+    with pytest.raises(ValueError, match="twice"):
+        fit_readout(x, y, features=features, target_features=(*per_target[:2], ("d90_mm", "d90_mm")))
+    # each group picks its own ridge strength: a list, one per target, where they differ
+    picked = fit_readout(x, y, features=features, target_features=per_target)["alpha"]
+    assert isinstance(picked, list) and len(picked) == 3 and picked[0] == picked[1]
 
 
 def test_a_readout_names_the_statistics_it_would_extrapolate_from():

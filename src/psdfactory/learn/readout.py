@@ -60,10 +60,15 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
     fill = np.where(np.isfinite(fill), fill, 0.0)
     x = _impute(x, fill)
     features = list(features)
+    if target_features is not None and len(target_features) != y.shape[1]:
+        raise ValueError(f"target_features names the statistics of {len(target_features)} targets, the labels have "
+                         f"{y.shape[1]}")
     groups: dict[tuple[str, ...], list[int]] = {}  # the statistics read -> the targets that read them
     for t, fs in enumerate(target_features or [tuple(features)] * y.shape[1]):
         if unknown := [f for f in fs if f not in features]:
             raise ValueError(f"target {t} of the read-out reads {unknown}, which are not among its features")
+        if len(set(fs)) != len(fs):
+            raise ValueError(f"target {t} of the read-out names a statistic twice: {list(fs)}")
         groups.setdefault(tuple(fs), []).append(t)
     mu, sd, _ = ridge_fit(x, y, 1.0)  # the standardisation: per feature, the same in every group
     weights = np.zeros((len(features) + 1, y.shape[1]))

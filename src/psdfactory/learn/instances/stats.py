@@ -147,7 +147,7 @@ def raw_psd(m: InstanceMeasurements, method: str) -> dict | None:
 # d10 and d50 only. The size map estimates each whole particle, hidden part included: what the fines, mostly hidden
 # in a bed, lack in view. The coarse grains lie on top, seen whole: their footprints measure d90 directly, and
 # there the map's estimate, only as good as the look the network trained on, is a liability on another look
-# (docs/experiments.md, 2026-11-29 and 2026-11-30).
+# (docs/experiments.md, 2026-11-29: the fp32 entry and the read-out per target).
 READOUT_TARGET_FEATURES = {
     "footprints": (READOUT_FEATURES,) * 3,
     "footprints+size_map": (MAP_READOUT_FEATURES,) * 3,

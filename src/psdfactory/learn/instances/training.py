@@ -211,11 +211,15 @@ def calibrate(model, device, settings: InstanceSettings, weights_used: str, resu
     }
 
 
+# the read-outs there were before 2026-11-28 (legacy_fingerprints): fixed, whatever READOUTS holds now
+LEGACY_READOUTS = ("footprints", "footprints+size_map")
+
+
 def legacy_fingerprints(params, settings: InstanceSettings, ids: list) -> tuple[str, ...]:
     """The fingerprints the same training had before 2026-11-28, when they held the calibration settings too
     (config.CALIBRATION_SETTINGS, under any of their values): a checkpoint written then still resumes."""
     out = []
-    for tta, sieve, readout in itertools.product(TTA_VIEWS, SIEVE_METHODS, READOUTS):
+    for tta, sieve, readout in itertools.product(TTA_VIEWS, SIEVE_METHODS, LEGACY_READOUTS):
         old = {**asdict(settings), "tta": tta, "sieve_method": sieve, "readout": readout}
         out.append(fingerprint(training_recipe({**asdict(params), "settings": old}), ids))
     return tuple(out)
