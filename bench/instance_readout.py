@@ -2,8 +2,9 @@
 """The instance estimator's calibrated read-out, refitted every way it can be on a trained model:
 what it reads (`train.instances.readout`: the footprints' statistics, or those and the size
 map's, for every target or for d10 and d50 only), what it is fitted on (the training split, or
-the training and validation splits) and the test-time views its maps are averaged over (`train.instances.tta`; `--tta`, default the
-model's), scored per target on the test split of each dataset beside its visible-particle ceiling.
+the training and validation splits) and the test-time views its maps are averaged over
+(`train.instances.tta`; `--tta`, default the model's), scored per target on the test split of
+each dataset beside its visible-particle ceiling.
 `--write-models DIR` also writes each read-out fitted as training fits it (on train+val) into a copy
 of the model, DIR/<tta>-<read-out>/model.pt, with the read-outs of the other size definitions refitted
 alike: a model `predict` and the benches take, e.g. to see a read-out on images of another look
