@@ -51,11 +51,16 @@ def r2_scores(y: np.ndarray, pred: np.ndarray) -> np.ndarray:
     return 1.0 - ss_res / np.where(ss_tot > 0, ss_tot, np.nan)
 
 
+def standardisation(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, scale) per column of `x` that a ridge fit standardises it by (a constant column: scale 1)."""
+    sd = x.std(axis=0)
+    return x.mean(axis=0), np.where(sd > 0, sd, 1.0)
+
+
 def ridge_fit(x: np.ndarray, y: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(mean, scale, weights) of a ridge regression of `y` on standardised `x` (the penalty
     `ridge` × N on the slopes, none on the intercept; weights[0] the intercept)."""
-    mu, sd = x.mean(axis=0), x.std(axis=0)
-    sd = np.where(sd > 0, sd, 1.0)
+    mu, sd = standardisation(x)
     a = np.column_stack([np.ones(len(x)), (x - mu) / sd])
     reg = ridge * len(x) * np.eye(a.shape[1])
     reg[0, 0] = 0.0

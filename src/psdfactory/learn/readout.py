@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from .instances.stats import READOUT_FEATURES, SIZE_STATS, STAT_NAMES
-from .metrics import MIN_SCENES, cross_validated_r2, ridge_fit
+from .metrics import MIN_SCENES, cross_validated_r2, ridge_fit, standardisation
 
 READOUT_ALPHAS = (1e-3, 1e-2, 1e-1, 1.0)  # ridge strengths (× N scenes) tried by cross-validation
 # how far beyond the range of a feature it was fitted on (× that range) a read-out reads without a word: farther,
@@ -70,7 +70,7 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
         if len(set(fs)) != len(fs):
             raise ValueError(f"target {t} of the read-out names a statistic twice: {list(fs)}")
         groups.setdefault(tuple(fs), []).append(t)
-    mu, sd, _ = ridge_fit(x, y, 1.0)  # the standardisation: per feature, the same in every group
+    mu, sd = standardisation(x)  # per feature: each group's ridge_fit standardises its columns alike
     weights = np.zeros((len(features) + 1, y.shape[1]))
     alpha_t, cv_t = np.ones(y.shape[1]), np.full(y.shape[1], np.nan)
     for fs, ts in groups.items():
