@@ -61,3 +61,30 @@ def test_labels_are_reproducible(tiny_results, tmp_path):
 def test_missing_scene_files_are_named(tmp_path):
     with pytest.raises(PsdError, match="missing file"):
         build_shard([tmp_path / "nope"], tmp_path, {"train": 1.0})
+
+
+def test_column_array_reads_parquet_columns_as_pyarrow_does(tmp_path):
+    """io.column_array (the scene jobs' reader of a pose table) gives pyarrow's own to_numpy values and
+    dtypes for every column kind a scene file holds, over chunk borders and sliced tables."""
+    import pyarrow as pa
+
+    from psdfactory.io import column_array, read_parquet, write_parquet
+
+    rng = np.random.default_rng(3)
+    t = pa.table({
+        "x": pa.chunked_array([rng.normal(size=7), rng.normal(size=13)]),
+        "f": pa.array(rng.normal(size=20).astype(np.float32)),
+        "i": pa.chunked_array([np.arange(11, dtype=np.int32), np.arange(9, dtype=np.int32)]),
+        "settled": pa.chunked_array([rng.random(9) > 0.5, rng.random(11) > 0.5]),
+        "name": pa.array([f"p{i}" for i in range(20)]),
+        "gap": pa.array([1.0, None] * 10),
+    })
+    write_parquet(tmp_path / "t.parquet", t)
+    for table in (t, t.slice(3), t.slice(9, 8), read_parquet(tmp_path / "t.parquet")):
+        for name in ("x", "f", "i", "settled"):
+            got, want = column_array(table, name), table.column(name).to_numpy()
+            assert got.dtype == want.dtype and np.array_equal(got, want), name
+            assert got.flags.writeable  # a copy, not a read-only view of the table's buffer
+        assert list(column_array(table, "name")) == table.column("name").to_pylist()  # falls back
+        assert np.array_equal(column_array(table, "gap"), table.column("gap").to_numpy(), equal_nan=True)
+    assert column_array(t.slice(20), "settled").shape == (0,)

@@ -256,10 +256,35 @@ def read_parquet(path: str | os.PathLike) -> pyarrow.Table:
     path = Path(path)
     if not path.exists():
         raise PsdError(f"missing file: {path}")
-    try:
-        return pq.read_table(path)
+    try:  # one file: ParquetFile, not read_table, whose dataset machinery imports pandas (~0.6 s a job)
+        with pq.ParquetFile(path) as f:
+            return f.read()
     except Exception as e:
         raise PsdError(f"{path} is not a readable Parquet file ({e}); delete it and rerun") from None
+
+
+def column_array(table: pyarrow.Table, name: str) -> np.ndarray:
+    """A column of a table without nulls as a numpy array (a copy). pyarrow's own `to_numpy` imports
+    pandas on its first call (~0.5 s of every scene job that reads a Parquet file); fixed-width
+    numbers and booleans are read from their buffers instead, anything else falls back to it."""
+    import pyarrow as pa
+
+    col = table.column(name)
+    if col.null_count or not (pa.types.is_boolean(col.type) or pa.types.is_integer(col.type)
+                              or pa.types.is_floating(col.type)):
+        return col.to_numpy()
+    dtype = np.dtype(bool) if pa.types.is_boolean(col.type) else np.dtype(col.type.to_pandas_dtype())
+    parts = []
+    for chunk in col.chunks:
+        data = chunk.buffers()[1]
+        if data is None or len(chunk) == 0:
+            continue
+        if pa.types.is_boolean(chunk.type):  # bit-packed, least significant bit first
+            bits = np.unpackbits(np.frombuffer(data, dtype=np.uint8), bitorder="little")
+            parts.append(bits[chunk.offset:chunk.offset + len(chunk)].astype(bool))
+        else:
+            parts.append(np.frombuffer(data, dtype=dtype, count=len(chunk), offset=chunk.offset * dtype.itemsize))
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=dtype)
 
 
 def write_png(path: str | os.PathLike, array: np.ndarray, compress_level: int = 6) -> None:

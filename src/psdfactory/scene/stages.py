@@ -26,6 +26,7 @@ import numpy as np
 from .. import PsdError
 from ..io import (
     DiskFullError,
+    column_array,
     copy_file,
     read_json,
     read_npz,
@@ -54,7 +55,7 @@ def load_poses(scene_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise PsdError(f"{scene_dir / 'poses.parquet'} lacks columns {missing}; rerun simulate")
 
     def col(name: str) -> np.ndarray:
-        return t.column(name).to_numpy()
+        return column_array(t, name)
 
     pos = np.stack([col("x_mm"), col("y_mm"), col("z_mm")], axis=1)
     quat = np.stack([col("qx"), col("qy"), col("qz"), col("qw")], axis=1)
