@@ -921,6 +921,8 @@ def test_benchmark_times_network_and_watershed(tiny):
     assert r["paths"]["fast"]["batched"]["images_per_s"] > 0 and r["paths"]["fp32"]["batch1"]["batch"] == 1
     assert abs(r["paths"]["fast"]["r2_change"]) <= r["max_r2_change"]
     assert r["stages"]["network_ms_per_image"] > 0 and r["stages"]["read_ms_per_image"] > 0
+    # the split between network and reading is timed once, for the path chosen (the one reported)
+    assert [k for k, p in r["paths"].items() if "stages" in p and k != "fast"] == [r["fast_key"]]
     assert r["paths"]["fp32"]["accuracy"]["n"] == 2
 
 
