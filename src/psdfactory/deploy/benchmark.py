@@ -185,9 +185,9 @@ def bench_images(est, results_root: Path | None, rows: list[dict] | None, batch:
 def benchmark_estimator(est, device: torch.device, results_root: Path | None, dataset: str | None, batch: int,
                         seconds: float, repeats: int, caps: Capabilities | None = None) -> dict:
     """Every candidate path on one device, end to end (`Estimator.predict`: the network and what
-    reads its outputs): speed at batch 1 and batched, the network's and the reading's share of the
-    time, and (with a dataset) accuracy on its test split; the fastest within the accuracy budget
-    becomes the "fast" path. Without a dataset only speed is measured (int8 is then calibrated on
+    reads its outputs): speed at batch 1 and batched, and (with a dataset) accuracy on its test
+    split; the fastest within the accuracy budget becomes the "fast" path, and its time alone is
+    split into the network's and the reading's share (`stages`). Without a dataset only speed is measured (int8 is then calibrated on
     random inputs)."""
     from ..learn.estimator import predictions, rows_readings
     from ..learn.evaluate import eval_rows
