@@ -187,8 +187,8 @@ def benchmark_estimator(est, device: torch.device, results_root: Path | None, da
     """Every candidate path on one device, end to end (`Estimator.predict`: the network and what
     reads its outputs): speed at batch 1 and batched, and (with a dataset) accuracy on its test
     split; the fastest within the accuracy budget becomes the "fast" path, and its time alone is
-    split into the network's and the reading's share (`stages`). Without a dataset only speed is measured (int8 is then calibrated on
-    random inputs)."""
+    split into the network's and the reading's share (`stages`). Without a dataset only speed is
+    measured (int8 is then calibrated on random inputs)."""
     from ..learn.estimator import predictions, rows_readings
     from ..learn.evaluate import eval_rows
     from ..learn.metrics import regression_metrics
