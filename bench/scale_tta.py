@@ -18,7 +18,6 @@ kept in --work, one CSV per model and factor, and read again where present.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import subprocess
 import sys
@@ -27,9 +26,9 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import spearmanr
 
+from psdfactory.deploy.predict import read_rows
 from psdfactory.learn import calibration
-
-NAMES = ("d10", "d50", "d90")
+from psdfactory.psd import NAMES
 
 
 def read(model: Path, images: list[str], mm_per_px: float, definition: str, out: Path) -> np.ndarray:
@@ -38,8 +37,7 @@ def read(model: Path, images: list[str], mm_per_px: float, definition: str, out:
         cmd = [str(Path(sys.executable).with_name("psdfactory")), "-q", "predict", "--model", str(model),
                "--mm-per-px", repr(mm_per_px), "--size-definition", definition, "--out", str(out), *images]
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
-    with out.open(newline="") as f:
-        rows = {r["image"]: r for r in csv.DictReader(f)}
+    rows = {r["image"]: r for r in read_rows(out)}
     return np.array([[float(rows[i][f"{n}_mm"]) for n in NAMES] for i in images])
 
 
@@ -65,6 +63,8 @@ def main() -> None:
     ap.add_argument("--factors", nargs="+", type=float, default=[1 / 1.15, 1.0, 1.15])
     ap.add_argument("--work", type=Path, default=Path("/tmp/psd-scale-tta"))
     a = ap.parse_args()
+    if not all(np.isfinite(v) and v > 0 for v in (a.mm_per_px, *a.factors)):
+        ap.error("--mm-per-px and --factors must be finite and above 0")
     if 1.0 not in a.factors:
         ap.error("--factors must include 1 (the reading at the images' own scale)")
     scenes = sorted(d for d in a.scenes.iterdir() if (d / "labels.json").is_file() and (d / "image.png").is_file())
