@@ -32,6 +32,7 @@ from ..io import (
     read_npz,
     read_parquet,
     read_png,
+    table_from_columns,
     write_json,
     write_npz,
     write_parquet,
@@ -120,8 +121,6 @@ def run_sample(params: dict, scene_dir: Path) -> dict:
 
 
 def run_simulate(params: dict, scene_dir: Path) -> dict:
-    import pyarrow as pa
-
     from .physics import PhysicsParams, simulate
 
     if params.get("copy_from_source"):
@@ -133,7 +132,7 @@ def run_simulate(params: dict, scene_dir: Path) -> dict:
     xy = np.array([[q["x"], q["y"]] for q in spec["particles"]], dtype=float).reshape(-1, 2)
     res = simulate(geometry, xy, float(spec["table_size"]), spec["entropy"], PhysicsParams.from_dict(params))
     n = len(geometry)
-    table = pa.table(
+    table = table_from_columns(
         {
             "particle_id": np.arange(n, dtype=np.int32),
             "x_mm": res.positions_mm[:, 0],
@@ -171,8 +170,6 @@ def run_render(params: dict, scene_dir: Path) -> dict:
 
 
 def run_label(params: dict, scene_dir: Path) -> dict:
-    import pyarrow as pa
-
     from ..psd import SIZE_DEFINITIONS, size_column
     from .labels import LabelParams, in_view, scene_labels, visible_pixels
     from .sizes import equivalent_sphere_diameter, footprints
@@ -217,9 +214,9 @@ def run_label(params: dict, scene_dir: Path) -> dict:
         "sim_attempts": sim["attempt"] + 1,
         **labels,
     }
-    particles = pa.table(
+    particles = table_from_columns(
         {
-            "scene_id": pa.array([spec["scene_id"]] * n, pa.string()),
+            "scene_id": np.full(n, spec["scene_id"]),
             "particle_id": np.arange(n, dtype=np.int32),
             "size_mm": by_definition[lp.size_definition],  # the labels' definition (size_definition)
             **by_column,
