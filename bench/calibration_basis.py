@@ -20,6 +20,15 @@ References are synthetic scenes (folders with image.png and labels.json: the wor
     .venv/bin/python bench/calibration_basis.py --model M --scenes /tmp/psd-paper-look/scenes \
         --mm-per-px 0.3 --label-definition b-axis
 
+With --true-masks instead of --model, the readings are those of a perfect grain finder: each scene's
+own mask.png (every particle in view, as the renderer drew it) measured as an instance model measures
+the grains it finds, in the footprint definitions; --at-mm-per-px first resamples the mask to a
+coarser scale (a model's: 0.59 for the default), as a model sees the image. What a calibration on
+footprints could reach with segmentation left out of the error:
+
+    .venv/bin/python bench/calibration_basis.py --true-masks --scenes /tmp/psd-paper-look/scenes \
+        --label-definition b-axis [--at-mm-per-px 0.59]
+
 Synthetic scenes only: the development photos are for measuring, never for choosing (issue 24).
 """
 
@@ -72,6 +81,30 @@ def readings(model: Path, images: list[Path],
     return {k: np.array(v) for k, v in out.items()}
 
 
+def true_mask_readings(scenes: list[Path], at_mm_per_px: float | None) -> dict[tuple[str, str], np.ndarray]:
+    """The footprint readings of each scene's own instance mask (a perfect grain finder), measured at
+    the scene's scale or resampled (nearest) to the coarser `at_mm_per_px`: {(definition, weighting): N x 3}."""
+    from psdfactory.io import read_png
+    from psdfactory.learn.instances.draw import resize_mask
+    from psdfactory.learn.instances.estimator import footprint_percentiles
+    from psdfactory.learn.instances.measure import measure_instances
+    from psdfactory.psd import FOOTPRINT_DEFINITIONS, GRAIN_WEIGHTINGS
+
+    out: dict[tuple[str, str], list[np.ndarray]] = {(d, w): [] for d in FOOTPRINT_DEFINITIONS for w in GRAIN_WEIGHTINGS}
+    for i, scene in enumerate(scenes, 1):
+        mask, mm = read_png(scene / "mask.png").astype(np.int64), scene_scale(scene)
+        if at_mm_per_px is not None and at_mm_per_px > mm:
+            shape = (max(1, round(mask.shape[0] * mm / at_mm_per_px)), max(1, round(mask.shape[1] * mm / at_mm_per_px)))
+            mm *= mask.shape[1] / shape[1]
+            mask = resize_mask(mask, shape)
+        m = measure_instances(mask, mm)
+        for d, w in out:
+            out[(d, w)].append(np.asarray(footprint_percentiles(m, d, w, str(scene)), dtype=float))
+        print(f"measured {i}/{len(scenes)} masks", file=sys.stderr, end="\r")
+    print(file=sys.stderr)
+    return {k: np.array(v) for k, v in out.items()}
+
+
 def loo_mape(p: np.ndarray, r: np.ndarray, method: str | None = None) -> np.ndarray:
     """Leave-one-out mean |error| / reference (%) per target of the calibration fitted on `p`."""
     from psdfactory.learn import calibration as cal
@@ -94,7 +127,12 @@ def subset_mape(p: np.ndarray, r: np.ndarray, k: int, draws: int, seed: int) -> 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--model", type=Path, required=True)
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--model", type=Path)
+    src.add_argument("--true-masks", action="store_true", help="read the scenes' own masks (a perfect grain finder) "
+                     "instead of a model's grains")
+    ap.add_argument("--at-mm-per-px", type=float, default=None, help="with --true-masks: resample each mask to this "
+                    "coarser scale first (a model's), as the model sees the image")
     ap.add_argument("--scenes", type=Path, nargs="+", required=True, help="folders of scene folders")
     ap.add_argument("--label-definition", default="b-axis")
     ap.add_argument("--label-weighting", default="number", help="number or volume (psd.WEIGHTINGS)")
@@ -120,9 +158,16 @@ def main(argv: list[str] | None = None) -> int:
             scale = float("nan")
         if not (math.isfinite(scale) and scale > 0):
             ap.error(f"--mm-per-px {args.mm_per_px!r}: a positive number of mm per pixel, or 'scene'")
-    reads = readings(args.model, [s / "image.png" for s in scenes], scale)
-    print(f"{len(scenes)} scenes; references: {args.label_definition}, {args.label_weighting}-weighted; "
-          f"model {args.model}")
+    if args.at_mm_per_px is not None and not (args.true_masks and math.isfinite(args.at_mm_per_px)
+                                              and args.at_mm_per_px > 0):
+        ap.error("--at-mm-per-px: a positive number of mm per pixel, with --true-masks")
+    if args.true_masks:
+        reads = true_mask_readings(scenes, args.at_mm_per_px)
+        source = "the scenes' own masks" + (f" at {args.at_mm_per_px} mm/px" if args.at_mm_per_px else "")
+    else:
+        reads = readings(args.model, [s / "image.png" for s in scenes], scale)
+        source = f"model {args.model}"
+    print(f"{len(scenes)} scenes; references: {args.label_definition}, {args.label_weighting}-weighted; {source}")
     head = f"{'reading':<22}{'rho d10/d50/d90':>18}{'uncal %':>20}{f'LOO all {len(scenes)} %':>20}"
     head += f"{'LOO affine %':>20}" + (f"{f'LOO of {args.subset} %':>20}" if args.subset else "")
     print(head)

@@ -335,3 +335,26 @@ def test_calibration_basis_reads_labels_and_scores_a_reading_by_its_leave_one_ou
     assert np.allclose(cb.subset_mape(0.5 * ref + 1, ref, 5, 20, 0), 0, atol=1e-9)
     noise = np.sort(rng.uniform(1, 30, (12, 3)), axis=1)
     assert (cb.loo_mape(noise, ref) > 10).all()
+
+
+def test_calibration_basis_measures_a_scenes_own_mask_as_a_perfect_grain_finder(tmp_path):
+    """calibration_basis.py --true-masks: each scene's mask.png measured at its scale (render.json), the grains cut
+    by the border left out, and resampled to a coarser scale first where asked."""
+    from psdfactory.io import write_png
+    from psdfactory.psd import weighted_percentiles
+
+    cb = bench_module("calibration_basis")
+    mask = np.zeros((120, 120), np.uint16)
+    for k, (r, c, side) in enumerate([(10, 10, 10), (40, 40, 20), (80, 10, 30), (0, 100, 10)], 1):
+        mask[r:r + side, c:c + side] = k  # squares; the last one touches the border
+    scene = tmp_path / "s0"
+    scene.mkdir()
+    write_png(scene / "mask.png", mask)
+    (scene / "render.json").write_text(json.dumps({"mm_per_px": 0.5}))
+    got = cb.true_mask_readings([scene], None)
+    widths_mm = 0.5 * np.array([10.0, 20.0, 30.0])  # the whole squares' sides
+    assert np.allclose(got[("feret-min", "number")][0], weighted_percentiles(widths_mm, None), rtol=0.03)
+    ecd_mm = widths_mm * np.sqrt(4 / np.pi)
+    assert np.allclose(got[("ecd", "area")][0], weighted_percentiles(ecd_mm, widths_mm**2), rtol=0.03)
+    coarse = cb.true_mask_readings([scene], 1.0)  # half the pixels a side: the same mm
+    assert np.allclose(coarse[("feret-min", "number")][0], got[("feret-min", "number")][0], rtol=0.1)

@@ -110,6 +110,7 @@ def test_table_from_columns_builds_what_pyarrow_table_builds(tmp_path):
             "u16": np.arange(n, dtype=np.uint16),
             "f32": rng.normal(size=n).astype(np.float32),
             "x": xyz[:, 0],  # a strided view
+            "reversed": xyz[::-1, 2],
             "big_endian": xyz[:, 1].astype(">f8"),
             "settled": rng.random(n) > 0.5,
             "listed": list(range(n)),  # not an array: pa.array's own way
@@ -122,3 +123,5 @@ def test_table_from_columns_builds_what_pyarrow_table_builds(tmp_path):
         write_parquet(tmp_path / "want.parquet", want)
         assert (tmp_path / "got.parquet").read_bytes() == (tmp_path / "want.parquet").read_bytes(), n
     assert table_from_columns({"s": np.full(0, "abc")}).schema.field("s").type == pa.string()
+    masked = np.ma.masked_array([1, 2, 3], mask=[0, 1, 0])  # its mask becomes a null, as pa.table has it
+    assert table_from_columns({"m": masked}).column("m").to_pylist() == [1, None, 3]

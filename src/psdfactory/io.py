@@ -265,10 +265,11 @@ def read_parquet(path: str | os.PathLike) -> pyarrow.Table:
 
 def _arrow_array(values: Any) -> pyarrow.Array:
     """One column for `table_from_columns`: a 1-D numpy array of numbers, booleans or strings laid
-    into Arrow buffers directly; anything else through `pyarrow.array`."""
+    into Arrow buffers directly; anything else (a masked array too: its mask becomes nulls) through
+    `pyarrow.array`."""
     import pyarrow as pa
 
-    if not (isinstance(values, np.ndarray) and values.ndim == 1):
+    if not (isinstance(values, np.ndarray) and values.ndim == 1) or np.ma.isMaskedArray(values):
         return values if isinstance(values, pa.Array) else pa.array(values)
     a = values
     if a.dtype == bool:  # Arrow packs booleans into bits, least significant bit first
@@ -290,7 +291,9 @@ def table_from_columns(columns: dict[str, Any]) -> pyarrow.Table:
     """A table of named 1-D columns, as `pyarrow.table(columns)` builds it (the same types and
     values), without its check for pandas objects: `pyarrow.table` and `pyarrow.array` import
     pandas (~0.4 s) in every scene job that writes a table. Numpy arrays of numbers, booleans and
-    strings are laid into Arrow buffers directly; any other column goes through `pyarrow.array`."""
+    strings are laid into Arrow buffers directly; any other column goes through `pyarrow.array`.
+    Two inputs `pyarrow.table` refuses or cuts are taken whole: a byte-swapped array (converted to
+    the machine's order) and a string with a NUL character in it."""
     import pyarrow as pa
 
     arrays = [_arrow_array(v) for v in columns.values()]

@@ -49,6 +49,19 @@ class InstanceResult:
     readout_outside: tuple[str, ...] = ()
 
 
+def footprint_percentiles(m: InstanceMeasurements, definition: str, weighting: str, where: str) -> np.ndarray:
+    """d10/d50/d90 (mm) of measured grains in a footprint definition (feret-min, feret-max, ecd),
+    weighted by number, footprint area or volume; grains touching the image's edge are left out
+    (their size there is not theirs)."""
+    size = {"feret-min": m.min_feret_mm, "feret-max": m.max_feret_mm, "ecd": m.eq_diameter_mm}[definition]
+    whole = ~m.touches_edge
+    if not whole.any():
+        raise PsdError(f"{where}: no whole grain found (every one touches the image's edge): no {definition} "
+                       "to measure")
+    weights = {"number": None, "area": m.area_mm2, "volume": m.volume_mm3}[weighting]
+    return weighted_percentiles(size[whole], None if weights is None else weights[whole])
+
+
 def averaged_maps(maps_fn, x: torch.Tensor, views: tuple[tuple[int, bool], ...]) -> np.ndarray:
     """The mean of `maps_fn` (N×3×H×W → N×C×H×W maps) over `views` of the images `x`, each
     view's maps turned back into the image's frame (test-time augmentation; any H, W)."""
@@ -151,14 +164,7 @@ class InstanceEstimator(Estimator):
         if definition == model_definition(self.meta):
             return res.calibrated
         if definition in FOOTPRINT_DEFINITIONS:
-            m = res.measurements
-            size = {"feret-min": m.min_feret_mm, "feret-max": m.max_feret_mm, "ecd": m.eq_diameter_mm}[definition]
-            whole = ~m.touches_edge
-            if not whole.any():
-                raise PsdError(f"{where}: no whole grain found (every one touches the image's edge): no {definition} "
-                               "to measure")
-            weights = {"number": None, "area": m.area_mm2, "volume": m.volume_mm3}[weighting]
-            return weighted_percentiles(size[whole], None if weights is None else weights[whole])
+            return footprint_percentiles(res.measurements, definition, weighting, where)
         return apply_readout(self.meta["readouts"][definition], res.stats[None])[0]
 
     def scorer(self, results_root: Path, dataset: str) -> DatasetScorer:
