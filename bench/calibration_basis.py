@@ -161,12 +161,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.at_mm_per_px is not None and not (args.true_masks and math.isfinite(args.at_mm_per_px)
                                               and args.at_mm_per_px > 0):
         ap.error("--at-mm-per-px: a positive number of mm per pixel, with --true-masks")
-    if args.true_masks:
-        reads = true_mask_readings(scenes, args.at_mm_per_px)
-        source = "the scenes' own masks" + (f" at {args.at_mm_per_px} mm/px" if args.at_mm_per_px else "")
-    else:
-        reads = readings(args.model, [s / "image.png" for s in scenes], scale)
-        source = f"model {args.model}"
+    from psdfactory import PsdError
+
+    try:
+        if args.true_masks:
+            reads = true_mask_readings(scenes, args.at_mm_per_px)
+            source = "the scenes' own masks" + (f" at {args.at_mm_per_px} mm/px" if args.at_mm_per_px else "")
+        else:
+            reads = readings(args.model, [s / "image.png" for s in scenes], scale)
+            source = f"model {args.model}"
+    except PsdError as e:  # a missing or corrupt mask, image or model: its own message, no traceback
+        ap.exit(1, f"calibration_basis.py: {e}\n")
     print(f"{len(scenes)} scenes; references: {args.label_definition}, {args.label_weighting}-weighted; {source}")
     head = f"{'reading':<22}{'rho d10/d50/d90':>18}{'uncal %':>20}{f'LOO all {len(scenes)} %':>20}"
     head += f"{'LOO affine %':>20}" + (f"{f'LOO of {args.subset} %':>20}" if args.subset else "")
