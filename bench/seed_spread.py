@@ -380,27 +380,6 @@ def recalibrate_run(source: Path, params: dict, results: Path, run: Path) -> Non
 SETTABLE = ("train.", "evaluate.")  # the recipe; a dataset setting would not match the scenes Snakemake makes
 
 
-def apply_settings(raw: dict, settings: list[str]) -> dict:
-    """`raw` with each KEY=VALUE of `settings` set (KEY dotted, VALUE parsed as YAML)."""
-    import yaml
-
-    for item in settings:
-        key, sep, value = item.partition("=")
-        if not sep or not key.startswith(SETTABLE) or key in SETTABLE:
-            sys.exit(f"--set {item!r}: give KEY=VALUE with a key under {' or '.join(s[:-1] for s in SETTABLE)}")
-        *parents, leaf = key.split(".")
-        node = raw
-        for k in parents:
-            node = node.setdefault(k, {})
-            if not isinstance(node, dict):
-                sys.exit(f"--set {item!r}: {k} is not a section of the config")
-        try:
-            node[leaf] = yaml.safe_load(value)
-        except yaml.YAMLError as e:
-            sys.exit(f"--set {item!r}: the value is not YAML ({str(e).splitlines()[0]})")
-    return raw
-
-
 def load_config(path: Path, settings: list[str]) -> dict:
     """The config, validated (Snakemake's validator and the project's checks) with `settings`
     applied; a .json file that --write-config wrote is taken as it is (no Snakemake needed)."""
@@ -418,7 +397,7 @@ def load_config(path: Path, settings: list[str]) -> dict:
             sys.exit(f"{path}: not a config that --write-config wrote (no train section)")
         return cfg
     try:
-        return psd_config.load_config(path, lambda raw: apply_settings(raw, settings))
+        return psd_config.load_config(path, lambda raw: psd_config.apply_settings(raw, settings, SETTABLE))
     except PsdError as e:
         sys.exit(str(e))
 

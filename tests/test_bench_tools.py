@@ -37,15 +37,18 @@ def test_a_shrunk_mask_keeps_ids_and_places_them_by_pixel_centre():
 
 
 def test_set_changes_the_recipe_only_and_write_config_gives_a_config_without_snakemake(tmp_path):
+    from psdfactory import PsdError
+    from psdfactory.config import apply_settings
+
     seed_spread = bench_module("seed_spread")
     raw = {"train": {"epochs": 8}, "seed": 1}
-    out = seed_spread.apply_settings(raw, ["train.epochs=50", "train.instances.lr=0.01", "evaluate.precision=bf16",
-                                           "train.architectures=[resnet50, efficientnet_b0]"])
+    out = apply_settings(raw, ["train.epochs=50", "train.instances.lr=0.01", "evaluate.precision=bf16",
+                               "train.architectures=[resnet50, efficientnet_b0]"], seed_spread.SETTABLE)
     assert out["train"] == {"epochs": 50, "instances": {"lr": 0.01}, "architectures": ["resnet50", "efficientnet_b0"]}
     assert out["evaluate"] == {"precision": "bf16"}
     for bad in ("seed=3", "datasets.train.n_scenes=5", "train=1", "train.epochs", "train.epochs.x=1"):
-        with pytest.raises(SystemExit):
-            seed_spread.apply_settings({"train": {"epochs": 8}}, [bad])
+        with pytest.raises(PsdError, match="--set"):
+            apply_settings({"train": {"epochs": 8}}, [bad], seed_spread.SETTABLE)
     written = tmp_path / "cfg.json"
     import subprocess
     import sys
@@ -358,3 +361,31 @@ def test_calibration_basis_measures_a_scenes_own_mask_as_a_perfect_grain_finder(
     assert np.allclose(got[("ecd", "area")][0], weighted_percentiles(ecd_mm, widths_mm**2), rtol=0.03)
     coarse = cb.true_mask_readings([scene], 1.0)  # half the pixels a side: the same mm
     assert np.allclose(coarse[("feret-min", "number")][0], got[("feret-min", "number")][0], rtol=0.1)
+
+
+def test_relook_renders_the_same_scenes_in_another_look_and_leaves_the_sources_alone(tmp_path, tiny_results):
+    """relook.py: each scene rendered again with a config's render block and --set render.* on top, at the
+    settings asked (resolution, a bright table), its particles, poses and labels copied as they are."""
+    import yaml
+
+    from psdfactory.io import read_png
+
+    relook = bench_module("relook")
+    cfg, root = tiny_results
+    scenes = root / "tiny" / "scenes"
+    before = {p: p.read_bytes() for p in scenes.glob("*/image.png")}
+    config = tmp_path / "tiny.yaml"
+    config.write_text(yaml.safe_dump(json.loads(json.dumps(cfg))))
+    assert relook.main(["--scenes", str(scenes), "--out", str(tmp_path / "out"), "--config", str(config),
+                        "--set", "render.resolution=48", "--set", "render.table_palette=[[0.9, 0.9, 0.9]]"]) == 0
+    assert {p: p.read_bytes() for p in scenes.glob("*/image.png")} == before
+    for src in sorted(scenes.iterdir()):
+        dst = tmp_path / "out" / src.name
+        assert (dst / "labels.json").read_bytes() == (src / "labels.json").read_bytes()
+        new, old = read_png(dst / "image.png"), read_png(src / "image.png")
+        mask_new, mask_old = read_png(dst / "mask.png"), read_png(src / "mask.png")
+        assert new.shape == (48, 48, 3) and mask_new.shape == (48, 48)
+        assert new[mask_new == 0].mean() > old[mask_old == 0].mean() + 60  # the table is bright now
+    with pytest.raises(SystemExit):
+        relook.main(["--scenes", str(scenes), "--out", str(tmp_path / "x"), "--config", str(config),
+                     "--set", "train.epochs=3"])  # not a render setting

@@ -138,6 +138,28 @@ def _short(e: Exception) -> str:
     return msg.splitlines()[0] if msg else str(e)
 
 
+def apply_settings(raw: dict, settings: list[str], settable: tuple[str, ...]) -> dict:
+    """`raw` (a config as read, before validation) with each KEY=VALUE of `settings` set: KEY dotted
+    under one of the `settable` prefixes (e.g. "train."), VALUE parsed as YAML (bench scripts' --set)."""
+    import yaml
+
+    for item in settings:
+        key, sep, value = item.partition("=")
+        if not sep or not key.startswith(settable) or key in settable:
+            raise PsdError(f"--set {item!r}: give KEY=VALUE with a key under {' or '.join(s[:-1] for s in settable)}")
+        *parents, leaf = key.split(".")
+        node = raw
+        for k in parents:
+            node = node.setdefault(k, {})
+            if not isinstance(node, dict):
+                raise PsdError(f"--set {item!r}: {k} is not a section of the config")
+        try:
+            node[leaf] = yaml.safe_load(value)
+        except yaml.YAMLError as e:
+            raise PsdError(f"--set {item!r}: the value is not YAML ({str(e).splitlines()[0]})") from None
+    return raw
+
+
 def load_config(path: Path, edit: Callable[[dict], dict] | None = None) -> dict:
     """The config file, validated (schema defaults filled in); `edit` changes the raw mapping
     first (e.g. bench/seed_spread.py's --set)."""
