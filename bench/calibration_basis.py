@@ -53,7 +53,12 @@ def labels_of(scene: Path, definition: str, weighting: str) -> np.ndarray:
 
 def scene_scale(scene: Path) -> float:
     """A scene's mm per pixel, from its render.json (the view jitters it where the config says so)."""
-    return float(json.loads((scene / "render.json").read_text())["mm_per_px"])
+    from psdfactory import PsdError
+
+    try:
+        return float(json.loads((scene / "render.json").read_text())["mm_per_px"])
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise PsdError(f"{scene / 'render.json'}: no readable mm_per_px ({type(e).__name__}: {e})") from None
 
 
 def readings(model: Path, images: list[Path],
@@ -145,12 +150,17 @@ def main(argv: list[str] | None = None) -> int:
 
     from scipy.stats import spearmanr
 
+    from psdfactory import PsdError
+
     scenes = sorted(s.parent for d in args.scenes for s in d.glob("*/labels.json") if (s.parent / "image.png").exists())
     if len(scenes) < 4:
         ap.error(f"{len(scenes)} scenes with image.png and labels.json under {args.scenes}: at least 4 needed")
     ref = np.array([labels_of(s, args.label_definition, args.label_weighting) for s in scenes])
     if args.mm_per_px is None or args.mm_per_px == "scene":
-        scale = None if args.mm_per_px is None else [scene_scale(s) for s in scenes]
+        try:
+            scale = None if args.mm_per_px is None else [scene_scale(s) for s in scenes]
+        except PsdError as e:
+            ap.exit(1, f"calibration_basis.py: {e}\n")
     else:
         try:
             scale = float(args.mm_per_px)
@@ -161,8 +171,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.at_mm_per_px is not None and not (args.true_masks and math.isfinite(args.at_mm_per_px)
                                               and args.at_mm_per_px > 0):
         ap.error("--at-mm-per-px: a positive number of mm per pixel, with --true-masks")
-    from psdfactory import PsdError
-
     try:
         if args.true_masks:
             reads = true_mask_readings(scenes, args.at_mm_per_px)

@@ -4,9 +4,11 @@
 A model that reads one look well and another badly is reading the look, not the particles. This
 script takes finished scenes (folders with spec.json, geometry.npz and poses.parquet: the
 workflow's `results/<dataset>/scenes/*`, or bench/paper_look.py's) and renders each again with a
-config's `render` block and any `--set render.KEY=VALUE` on top — the same particles, poses and
-labels — into --out/<scene>/, so that a model's readings of the two looks can be compared scene by
-scene (bench/calibration_basis.py, bench/paper_look.py's scoring):
+config's `render` block and any `--set render.KEY=VALUE` on top — the same particles and poses,
+and the source's labels, so the same references — into --out/<scene>/, so that a model's readings
+of the two looks can be compared scene by scene (bench/calibration_basis.py, bench/paper_look.py's
+scoring). The labels say which particles are in view, so a render that frames another part of the
+table (another `view_fraction`) is refused; resolution, colours, light and camera effects may change.
 
     .venv/bin/python bench/relook.py --scenes /tmp/psd-paper-look/scenes --out /tmp/relook/bright \\
         --config config/config.yaml --set render.resolution=1000 \\
@@ -34,6 +36,30 @@ def render_settings(config: Path, settings: list[str]) -> dict:
     return C.render_params(cfg)
 
 
+def view_mm(scene: Path) -> float:
+    """The width of table a scene's render shows (mm), from its render.json."""
+    from psdfactory import PsdError
+    from psdfactory.io import read_json
+
+    rend = read_json(scene / "render.json")
+    try:
+        return float(rend["mm_per_px"]) * int(rend["resolution"])
+    except (KeyError, TypeError, ValueError):
+        raise PsdError(f"{scene / 'render.json'}: no mm_per_px and resolution") from None
+
+
+def check_same_view(src: Path, dst: Path) -> None:
+    """Refuse a render of another part of the table than the source's (its labels would not be of it);
+    the scene's new folder is removed."""
+    from psdfactory import PsdError
+
+    a, b = view_mm(src), view_mm(dst)
+    if abs(a - b) > 1e-3 * a:
+        shutil.rmtree(dst)
+        raise PsdError(f"{dst.name}: the render shows {b:.1f} mm of table where the source shows {a:.1f} mm; the "
+                       "labels are the source's, so keep its view (render.view_fraction) and change only how it looks")
+
+
 def relook(scenes: list[Path], out: Path, params: dict) -> list[Path]:
     """Each scene rendered again with `params` into out/<scene name>/ (its other files copied)."""
     from psdfactory.scene.stages import run_render
@@ -47,6 +73,7 @@ def relook(scenes: list[Path], out: Path, params: dict) -> list[Path]:
                 shutil.copy2(src / name, dst / name)
         if not (dst / "image.png").exists():
             run_render(params, dst)
+            check_same_view(src, dst)
         done.append(dst)
         eta = (len(scenes) - i) * (time.perf_counter() - t0) / i
         print(f"rendered {i}/{len(scenes)} scenes, ETA {eta:.0f} s", file=sys.stderr, flush=True)

@@ -389,3 +389,7 @@ def test_relook_renders_the_same_scenes_in_another_look_and_leaves_the_sources_a
     with pytest.raises(SystemExit):
         relook.main(["--scenes", str(scenes), "--out", str(tmp_path / "x"), "--config", str(config),
                      "--set", "train.epochs=3"])  # not a render setting
+    with pytest.raises(SystemExit):  # another part of the table: the source's labels would not be of it
+        relook.main(["--scenes", str(scenes), "--out", str(tmp_path / "y"), "--config", str(config),
+                     "--set", "render.view_fraction=[0.5, 0.5]"])
+    assert not any((tmp_path / "y").glob("*/image.png"))

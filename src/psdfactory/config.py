@@ -173,8 +173,9 @@ def load_config(path: Path, edit: Callable[[dict], dict] | None = None) -> dict:
         raise PsdError(f"{path} is not valid YAML: {str(e)[:500]}") from None
     if not isinstance(config, dict):
         raise PsdError(f"{path} must hold a mapping of config keys")
+    config = edit(config) if edit else config  # its own errors name what was edited, not the file
     try:
-        return validate(edit(config) if edit else config)
+        return validate(config)
     except PsdError as e:
         raise PsdError(f"{path}: {e}") from None
 
