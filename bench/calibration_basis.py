@@ -156,29 +156,26 @@ def main(argv: list[str] | None = None) -> int:
     if len(scenes) < 4:
         ap.error(f"{len(scenes)} scenes with image.png and labels.json under {args.scenes}: at least 4 needed")
     ref = np.array([labels_of(s, args.label_definition, args.label_weighting) for s in scenes])
-    if args.mm_per_px is None or args.mm_per_px == "scene":
-        try:
-            scale = None if args.mm_per_px is None else [scene_scale(s) for s in scenes]
-        except PsdError as e:
-            ap.exit(1, f"calibration_basis.py: {e}\n")
-    else:
+    if args.at_mm_per_px is not None and not (args.true_masks and math.isfinite(args.at_mm_per_px)
+                                              and args.at_mm_per_px > 0):
+        ap.error("--at-mm-per-px: a positive number of mm per pixel, with --true-masks")
+    if args.mm_per_px not in (None, "scene"):
         try:
             scale = float(args.mm_per_px)
         except ValueError:
             scale = float("nan")
         if not (math.isfinite(scale) and scale > 0):
             ap.error(f"--mm-per-px {args.mm_per_px!r}: a positive number of mm per pixel, or 'scene'")
-    if args.at_mm_per_px is not None and not (args.true_masks and math.isfinite(args.at_mm_per_px)
-                                              and args.at_mm_per_px > 0):
-        ap.error("--at-mm-per-px: a positive number of mm per pixel, with --true-masks")
-    try:
+    try:  # a missing or corrupt render.json, mask, image or model: its own message, no traceback
         if args.true_masks:
             reads = true_mask_readings(scenes, args.at_mm_per_px)
             source = "the scenes' own masks" + (f" at {args.at_mm_per_px} mm/px" if args.at_mm_per_px else "")
         else:
+            if args.mm_per_px in (None, "scene"):
+                scale = None if args.mm_per_px is None else [scene_scale(s) for s in scenes]
             reads = readings(args.model, [s / "image.png" for s in scenes], scale)
             source = f"model {args.model}"
-    except PsdError as e:  # a missing or corrupt mask, image or model: its own message, no traceback
+    except PsdError as e:
         ap.exit(1, f"calibration_basis.py: {e}\n")
     print(f"{len(scenes)} scenes; references: {args.label_definition}, {args.label_weighting}-weighted; {source}")
     head = f"{'reading':<22}{'rho d10/d50/d90':>18}{'uncal %':>20}{f'LOO all {len(scenes)} %':>20}"
