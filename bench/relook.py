@@ -93,8 +93,11 @@ def main(argv: list[str] | None = None) -> int:
     scenes = sorted(p.parent for p in args.scenes.glob("*/poses.parquet") if (p.parent / "spec.json").exists())
     if not scenes:
         ap.error(f"no scene folders (spec.json, poses.parquet) under {args.scenes}")
-    if args.out.resolve() == args.scenes.resolve():
-        ap.error("--out is --scenes: the scenes would be rendered over themselves")
+    out = args.out.resolve()
+    if out == args.scenes.resolve() or any(out.is_relative_to(s.resolve()) for s in scenes):
+        ap.error(f"--out {args.out} is --scenes or inside one of its scenes: the sources would be written into")
+    if out.exists() and not out.is_dir():
+        ap.error(f"--out {args.out} is a file: give a folder")
     try:
         params = render_settings(args.config, args.settings)
         relook(scenes, args.out, params)

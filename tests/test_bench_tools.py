@@ -393,3 +393,7 @@ def test_relook_renders_the_same_scenes_in_another_look_and_leaves_the_sources_a
         relook.main(["--scenes", str(scenes), "--out", str(tmp_path / "y"), "--config", str(config),
                      "--set", "render.view_fraction=[0.5, 0.5]"])
     assert not any((tmp_path / "y").glob("*/image.png"))
+    for out in (scenes, next(scenes.iterdir()) / "new", config):  # the sources themselves, inside one, a file
+        with pytest.raises(SystemExit):
+            relook.main(["--scenes", str(scenes), "--out", str(out), "--config", str(config)])
+    assert {p: p.read_bytes() for p in scenes.glob("*/image.png")} == before
