@@ -16,6 +16,13 @@ denser) it extrapolates. Two remedies, each measured against it:
   the train/val scenes of the first dataset of another config (e.g. bench/configs/wider_sizes.yaml:
   the default's rock and table with sizes mean 3-14 mm, sd 2-8 mm, 150-400 particles), made first
   with `snakemake -j2 scenes --configfile CONFIG`.
+- **coverage interactions** (`ridge + coverage`): the read-out as trained, plus each size statistic it
+  reads times the covered fraction, so that how much the hidden grains pull the labels below the
+  grains in view may change with how densely the bed covers the table (a model trained on dense and
+  sparse beds together).
+- **a part of the training families to fit on** (`--fit-on DATASET ...`): the read-outs fitted on the
+  train/val scenes of only these of the model's training datasets (e.g. the dense beds of a model
+  trained on dense and sparse ones).
 
 Each model's statistics are read as `psdfactory predict` reads an image (`predict.read_at_scale`),
 the read-outs refitted on the model's training scenes (train + val, as training fits them), and
@@ -87,14 +94,52 @@ def apply_ratio(ro: dict, x: np.ndarray) -> np.ndarray:
     return np.sort(v50[:, None] * np.exp(np.column_stack([np.ones(len(z)), z]) @ ro["weights"]), axis=1)
 
 
+def coverage_names(features: tuple[str, ...]) -> tuple[str, ...]:
+    """The interaction statistics `ridge + coverage` adds: each size statistic among `features` × covered_fraction."""
+    from psdfactory.learn.instances.stats import MAP_SIZE_STATS, SIZE_STATS
+
+    return tuple(f"{s}*covered_fraction" for s in (*SIZE_STATS, *MAP_SIZE_STATS) if s in features)
+
+
+def with_coverage(x: np.ndarray, extra: tuple[str, ...]) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Instance statistics (N×len(STAT_NAMES)) with the columns `extra` (coverage_names) appended, and all names."""
+    from psdfactory.learn.instances.stats import STAT_NAMES
+
+    x = np.array(x, dtype=float, ndmin=2)
+    cov = x[:, STAT_NAMES.index("covered_fraction")][:, None]
+    cols = [STAT_NAMES.index(n.split("*")[0]) for n in extra]
+    return np.column_stack([x, x[:, cols] * cov]), (*STAT_NAMES, *extra)
+
+
+def fit_coverage(x: np.ndarray, y: np.ndarray, features: tuple[str, ...], per_target: list | None) -> dict:
+    """The ridge read-out as trained (`features`, `per_target`) plus coverage_names in every target's statistics."""
+    from psdfactory.learn.readout import fit_readout
+
+    extra = coverage_names(features)
+    xx, names = with_coverage(x, extra)
+    targets = None if per_target is None else [
+        (*t, *(e for e in extra if e.split("*")[0] in t)) for t in per_target]
+    return {**fit_readout(xx, y, features=(*features, *extra), target_features=targets, names=names), "extra": extra}
+
+
+def apply_coverage(ro: dict, x: np.ndarray) -> np.ndarray:
+    from psdfactory.learn.readout import apply_readout
+
+    xx, names = with_coverage(x, tuple(ro["extra"]))
+    return apply_readout(ro, xx, names)
+
+
 def scores(p: np.ndarray, y: np.ndarray) -> dict:
     from scipy.stats import spearmanr
 
+    from psdfactory.learn import calibration
     from psdfactory.learn.metrics import r2_scores
 
     e = (p - y) / y
+    loo = (calibration.leave_one_out(p, y) - y) / y if len(y) >= 3 else np.full_like(y, np.nan)
     return {"r2": r2_scores(y, p).tolist(), "rho": [float(spearmanr(p[:, j], y[:, j])[0]) for j in range(3)],
-            "err_pct": (100 * e.mean(0)).tolist(), "abs_err_pct": (100 * np.abs(e).mean(0)).tolist()}
+            "err_pct": (100 * e.mean(0)).tolist(), "abs_err_pct": (100 * np.abs(e).mean(0)).tolist(),
+            "loo_abs_err_pct": (100 * np.abs(loo).mean(0)).tolist()}
 
 
 def main() -> None:
@@ -114,6 +159,8 @@ def main() -> None:
     ap.add_argument("--paper-look", type=Path, help="bench/paper_look.py's --work folder (its scenes/)")
     ap.add_argument("--wider", type=Path, help="a config whose first dataset's train/val scenes the read-outs are "
                                                "also fitted on (made first: snakemake scenes --configfile)")
+    ap.add_argument("--fit-on", nargs="+", metavar="DATASET",
+                    help="fit the read-outs on the train/val scenes of only these of each model's training datasets")
     ap.add_argument("--definitions", nargs="+", default=["sieve", "b-axis"])
     ap.add_argument("--out", type=Path, help="write the figures as JSON")
     a = ap.parse_args()
@@ -140,10 +187,14 @@ def main() -> None:
         tr, va, _ = training_rows(wroot, [wds])
         wider = (wroot, tr + va)
     fits = ["train"] + (["train + wider"] if wider else [])
+    own = f"train ({', '.join(a.fit_on)})" if a.fit_on else "train"  # how the rows name the fit on the model's scenes
     out = []
     for model in a.model:
         est = load_estimator(Path(model))
-        tr, va, _ = training_rows(root, est.meta["params"]["datasets"])
+        trained_on = est.meta["params"]["datasets"]
+        if a.fit_on and (unknown := sorted(set(a.fit_on) - set(trained_on))):
+            raise SystemExit(f"--fit-on {' '.join(unknown)}: {model} was trained on {', '.join(trained_on)}")
+        tr, va, _ = training_rows(root, a.fit_on or trained_on)
         fit_rows = {"train": tr + va}
 
         def stats_of(base: Path, rows: list[dict], est=est) -> np.ndarray:
@@ -162,20 +213,24 @@ def main() -> None:
                 readouts = {"ridge (as trained)": (fit_readout(fit_x[fit], y, features=features,
                                                                      target_features=per_target), apply_readout),
                             "ratio": (fit_ratio(fit_x[fit], y, True), apply_ratio),
+                            "ridge + coverage": (fit_coverage(fit_x[fit], y, features, per_target), apply_coverage),
                             "ratio-nomap": (fit_ratio(fit_x[fit], y, False), apply_ratio)}
                 for name, (ro, apply) in readouts.items():
                     for k, (_, rows) in sets.items():
-                        out.append({"model": model, "fitted_on": fit, "definition": d, "readout": name, "images": k,
-                                    "n": len(rows), **scores(apply(ro, scored[k]), labels(rows, d))})
+                        out.append({"model": model, "fitted_on": own if fit == "train" else fit, "definition": d,
+                                    "readout": name, "images": k, "n": len(rows),
+                                    **scores(apply(ro, scored[k]), labels(rows, d))})
 
     def f(v: list[float], digits: int = 2) -> str:
         return " / ".join(f"{x:.{digits}f}" for x in v)
 
-    print("| model | fitted on | definition | read-out | images | R² | ρ | mean error % | mean abs error % |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| model | fitted on | definition | read-out | images | R² | ρ | mean error % | mean abs error % | "
+          "calibrated, leave-one-out: mean abs error % |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in out:
         print(f"| {r['model']} | {r['fitted_on']} | {r['definition']} | {r['readout']} | {r['images']} ({r['n']}) | "
-              f"{f(r['r2'])} | {f(r['rho'])} | {f(r['err_pct'], 1)} | {f(r['abs_err_pct'], 1)} |")
+              f"{f(r['r2'])} | {f(r['rho'])} | {f(r['err_pct'], 1)} | {f(r['abs_err_pct'], 1)} | "
+              f"{f(r['loo_abs_err_pct'], 1)} |")
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)
         a.out.write_text(json.dumps(out, indent=1))

@@ -261,6 +261,38 @@ def test_the_scale_free_readout_scales_with_the_bed_and_fits_a_known_ratio():
         np.testing.assert_allclose(rt.apply_ratio(ro, big), 3.0 * rt.apply_ratio(ro, x), rtol=1e-9)
 
 
+def test_the_coverage_readout_fits_labels_whose_correction_changes_with_the_covered_fraction():
+    """bench/readout_transfer.py's `ridge + coverage` read-out: labels whose ratio to the visible d50 grows with the
+    covered fraction (hidden fines pull a dense bed's labels further) are fitted back, where the plain ridge read-out
+    (one slope for every bed) cannot; the read-out applies through `apply_readout`'s names, per target as trained."""
+    from psdfactory.learn.instances.stats import READOUT_FEATURES, STAT_NAMES
+    from psdfactory.learn.readout import apply_readout, fit_readout
+
+    rt = bench_module("readout_transfer")
+    rng = np.random.default_rng(1)
+    n = 80
+    x = np.ones((n, len(STAT_NAMES)))
+    v50 = rng.uniform(3, 12, n)
+    cov = rng.uniform(0.3, 0.95, n)
+    for s, f in (("d10_mm", 0.5), ("d50_mm", 1.0), ("d90_mm", 1.8), ("d10_v_mm", 0.9), ("d50_v_mm", 1.5),
+                 ("d90_v_mm", 2.2), ("mean_mm", 1.1), ("std_mm", 0.6)):
+        x[:, STAT_NAMES.index(s)] = v50 * f * rng.uniform(0.95, 1.05, n)
+    x[:, STAT_NAMES.index("covered_fraction")] = cov
+    x[:, STAT_NAMES.index("log_density")] = x[:, STAT_NAMES.index("log_density_all")] = rng.uniform(0.5, 1.0, n)
+    y = v50[:, None] * np.array([0.4, 0.9, 1.7]) * (1.4 - 0.6 * cov)[:, None]
+    feats = READOUT_FEATURES
+    plain = apply_readout(fit_readout(x, y, features=feats), x)
+    ro = rt.fit_coverage(x, y, feats, None)
+    assert ro["extra"] == rt.coverage_names(feats) and "d50_mm*covered_fraction" in ro["extra"]
+    fitted = rt.apply_coverage(ro, x)
+    err = lambda p: np.abs(p / y - 1).mean()  # noqa: E731
+    assert err(fitted) < 0.01 < err(plain), (err(fitted), err(plain))
+    # per target: a target's interactions are those of the statistics it reads
+    ro = rt.fit_coverage(x, y, feats, [feats, feats, feats[:3]])
+    assert set(ro["target_features"][2]) == {*feats[:3], *(f"{s}*covered_fraction" for s in feats[:3])}
+    assert rt.apply_coverage(ro, x).shape == y.shape
+
+
 def test_the_cell_histogram_reads_percentiles_inside_the_bins_that_hold_them():
     """bench/cnn_cell_head.py: a bed of one size class reads every percentile inside that class; area shares
     turn into number shares (a bin of grains twice the size holds a quarter of the grains per pixel)."""

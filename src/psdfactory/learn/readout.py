@@ -25,15 +25,18 @@ def _impute(x: np.ndarray, fill: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(x), x, fill[None, :])
 
 
-def readout_columns(x: np.ndarray, features: list[str] | tuple[str, ...]) -> np.ndarray:
-    """The columns `features` (names of STAT_NAMES) of instance statistics (N×len(STAT_NAMES))."""
+def readout_columns(x: np.ndarray, features: list[str] | tuple[str, ...],
+                    names: tuple[str, ...] = STAT_NAMES) -> np.ndarray:
+    """The columns `features` of instance statistics (N×len(names); `names` the columns' names:
+    STAT_NAMES, or those and derived statistics appended by a caller that reads those too)."""
     x = np.array(x, dtype=float, ndmin=2)
-    return x[:, [STAT_NAMES.index(f) for f in features]]
+    return x[:, [names.index(f) for f in features]]
 
 
 def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOUT_ALPHAS, folds: int = 5,
                 features: tuple[str, ...] = READOUT_FEATURES,
-                target_features: tuple[tuple[str, ...], ...] | None = None) -> dict:
+                target_features: tuple[tuple[str, ...], ...] | None = None,
+                names: tuple[str, ...] = STAT_NAMES) -> dict:
     """A ridge read-out of the labels (N×3) from instance statistics (N×len(STAT_NAMES); the
     columns `features` are used), as plain lists: NaN features imputed with the training means,
     features standardised, the ridge strength (× N) picked by k-fold cross-validated mean R²
@@ -49,13 +52,14 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
     them for every target): what each target reads. Targets that read the same statistics are
     fitted together, each such group with its own ridge strength; a target's weights on the
     statistics it does not read are zero, so the read-out applies as any other. Such a read-out
-    records `target_features`, and `alpha` per target."""
+    records `target_features`, and `alpha` per target. `names`: the names of `x`'s columns
+    (`readout_columns`); a read-out fitted with other names than STAT_NAMES is applied with the same."""
     y = np.asarray(y, float)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = y / readout_columns(x, VISIBLE)  # how much the labels exceed the visible grains' sizes
+        ratio = y / readout_columns(x, VISIBLE, names)  # how much the labels exceed the visible grains' sizes
     ratio = np.where(np.isfinite(ratio) & (ratio > 0), ratio, np.nan)
     bounded = np.isfinite(ratio).any(axis=0).all()
-    x = readout_columns(x, features)
+    x = readout_columns(x, features, names)
     fill = np.nanmean(np.where(np.isfinite(x), x, np.nan), axis=0) if len(x) else np.zeros(x.shape[1])
     fill = np.where(np.isfinite(fill), fill, 0.0)
     x = _impute(x, fill)
@@ -104,19 +108,19 @@ def _ridge_strength(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...],
     return best, cv[best]
 
 
-def apply_readout(readout: dict, x: np.ndarray) -> np.ndarray:
+def apply_readout(readout: dict, x: np.ndarray, names: tuple[str, ...] = STAT_NAMES) -> np.ndarray:
     """Calibrated d10/d50/d90 (N×3, mm) from instance statistics (N×len(STAT_NAMES)), sorted so
     d10 ≤ d50 ≤ d90. Each target is held within the ratios to the visible grains' size (VISIBLE)
     the labels had on the scenes it was fitted on: it corrects a reading as much as it did there
     and no more, so that where the linear fit extrapolates (`outside_domain`) it neither reads a
     size below zero nor departs from the grains in view by more than it ever learnt. A read-out
-    fitted before the ratios were recorded is not held."""
+    fitted before the ratios were recorded is not held. `names`: as `fit_readout` was given them."""
     x = np.array(x, dtype=float, ndmin=2)
-    f = _impute(readout_columns(x, readout["features"]), np.asarray(readout["impute"], float))
+    f = _impute(readout_columns(x, readout["features"], names), np.asarray(readout["impute"], float))
     z = (f - np.asarray(readout["mean"], float)) / np.asarray(readout["scale"], float)
     p = np.column_stack([np.ones(len(z)), z]) @ np.asarray(readout["weights"], float)
     if readout.get("ratio_lo") is not None:
-        seen = readout_columns(x, VISIBLE)
+        seen = readout_columns(x, VISIBLE, names)
         ok = np.isfinite(seen) & (seen > 0)
         lo, hi = seen * np.asarray(readout["ratio_lo"], float), seen * np.asarray(readout["ratio_hi"], float)
         p = np.where(ok, np.clip(p, lo, hi), p)
