@@ -1,11 +1,12 @@
 #!/usr/bin/env python
-"""The instance estimator's read-out on images of another distribution: two variants measured, not
-adopted (docs/experiments.md, 2026-11-27).
+"""The instance estimator's read-out on images of another distribution: variants measured, not adopted
+(docs/experiments.md, 2026-11-27 and 2026-11-29).
 
 The read-out (`learn.readout`) is a ridge regression from an image's instance statistics to its
 labels, fitted on the training scenes: it learns how much the hidden fines pull the labels below the
 grains in view. On scenes of another size distribution (the paper's renders: narrower, smaller and
-denser) it extrapolates. Two remedies, each measured against it:
+denser) it extrapolates; on a model trained on dense and sparse beds together it must read both. The
+variants, each measured against it:
 
 - **scale-free** (`ratio`, `ratio-nomap`): predict log(label / the visible grains' d50) from
   dimensionless statistics only (the visible grains' d10, d90, volume-weighted d-values and mean over
@@ -25,13 +26,16 @@ denser) it extrapolates. Two remedies, each measured against it:
   trained on dense and sparse ones).
 
 Each model's statistics are read as `psdfactory predict` reads an image (`predict.read_at_scale`),
-the read-outs refitted on the model's training scenes (train + val, as training fits them), and
-scored per target (R², Spearman ρ, mean and mean absolute relative error) on the test split of the
-training dataset, the other evaluated datasets, and scenes in the paper's look
-(`bench/paper_look.py`'s --work folder, 0.3 mm/px), in the sieve and b-axis definitions:
+the read-outs refitted on the model's training scenes (train + val, as training fits them; with
+--fit-on, those of the datasets it names), and scored per target on the test split of the training
+dataset, the other evaluated datasets, and scenes in the paper's look (`bench/paper_look.py`'s
+--work folder, 0.3 mm/px), in the sieve and b-axis definitions: R², Spearman ρ, mean and mean
+absolute relative error, and the mean absolute relative error after a leave-one-out calibration on
+the set's other images (as `psdfactory calibrate` fits one; NaN where fewer than its minimum of
+references read a finite size):
 
     .venv/bin/python bench/readout_transfer.py --model results/models/instances/model.pt \
-        --datasets train train_cycles ood_test --paper-look /tmp/psd-paper-look [--wider CONFIG]
+        --datasets train train_cycles ood_test --paper-look /tmp/psd-paper-look [--wider CONFIG] [--fit-on train]
 """
 
 from __future__ import annotations
@@ -112,7 +116,8 @@ def with_coverage(x: np.ndarray, extra: tuple[str, ...]) -> tuple[np.ndarray, tu
 
 
 def fit_coverage(x: np.ndarray, y: np.ndarray, features: tuple[str, ...], per_target: list | None) -> dict:
-    """The ridge read-out as trained (`features`, `per_target`) plus coverage_names in every target's statistics."""
+    """The ridge read-out as trained (`features`, `per_target`), each target also reading its size statistics ×
+    covered_fraction (coverage_names); apply it with apply_coverage, which appends the same columns."""
     from psdfactory.learn.readout import fit_readout
 
     extra = coverage_names(features)
@@ -132,23 +137,32 @@ def apply_coverage(ro: dict, x: np.ndarray) -> np.ndarray:
 def scores(p: np.ndarray, y: np.ndarray) -> dict:
     from scipy.stats import spearmanr
 
+    from psdfactory import PsdError
     from psdfactory.learn import calibration
     from psdfactory.learn.metrics import r2_scores
 
     e = (p - y) / y
-    loo = (calibration.leave_one_out(p, y) - y) / y if len(y) >= 3 else np.full_like(y, np.nan)
+    loo = np.full_like(y, np.nan)
+    ok = np.isfinite(p).all(axis=1) & np.isfinite(y).all(axis=1)
+    if ok.sum() >= calibration.MIN_REFERENCES:  # a reading it cannot fit (all alike, say) scores NaN, not an abort
+        try:
+            loo[ok] = (calibration.leave_one_out(p[ok], y[ok]) - y[ok]) / y[ok]
+        except PsdError:
+            pass
     return {"r2": r2_scores(y, p).tolist(), "rho": [float(spearmanr(p[:, j], y[:, j])[0]) for j in range(3)],
             "err_pct": (100 * e.mean(0)).tolist(), "abs_err_pct": (100 * np.abs(e).mean(0)).tolist(),
-            "loo_abs_err_pct": (100 * np.abs(loo).mean(0)).tolist()}
+            "loo_abs_err_pct": [100 * float(np.abs(c[np.isfinite(c)]).mean()) if np.isfinite(c).any() else np.nan
+                                for c in loo.T]}  # over the images it could calibrate
 
 
 def main() -> None:
+    from psdfactory import PsdError
     from psdfactory.cli import configure_logging
     from psdfactory.config import load_config
     from psdfactory.learn.data import training_rows
     from psdfactory.learn.evaluate import eval_rows
     from psdfactory.learn.readout import apply_readout, fit_readout
-    from psdfactory.learn.runtime import load_estimator
+    from psdfactory.learn.runtime import load_checkpoint, load_estimator
     from psdfactory.psd import definition_targets
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -169,7 +183,23 @@ def main() -> None:
         if a.out.is_dir() or any(a.out.resolve() == p.resolve() for p in inputs):
             raise SystemExit(f"--out {a.out} is a folder or one of the inputs (a model or config): give a new file")
     configure_logging()
-    root = Path(load_config(Path(a.config))["results"])
+    try:
+        root = Path(load_config(Path(a.config))["results"])
+    except PsdError as e:
+        raise SystemExit(str(e)) from None
+    fit_on = list(dict.fromkeys(a.fit_on or []))
+    own = f"train ({', '.join(fit_on)})" if fit_on else "train"  # how the rows name the fit on the model's scenes
+    labels_of = {"train": own, "train + wider": f"{own} + wider"}
+    trained_on = {}
+    for model in a.model:  # every --fit-on checked before any image is read
+        try:
+            meta = load_checkpoint(Path(model)).get("meta") or {}
+        except PsdError as e:
+            raise SystemExit(str(e)) from None
+        trained_on[model] = list((meta.get("params") or {}).get("datasets") or [])
+        if unknown := [d for d in fit_on if d not in trained_on[model]]:
+            raise SystemExit(f"--fit-on {' '.join(unknown)}: not among the datasets {model} was trained on "
+                             f"({', '.join(trained_on[model])})")
 
     def labels(rows: list[dict], d: str) -> np.ndarray:
         return np.array([[r[c] for c in definition_targets(d, "number")] for r in rows], float)
@@ -187,14 +217,10 @@ def main() -> None:
         tr, va, _ = training_rows(wroot, [wds])
         wider = (wroot, tr + va)
     fits = ["train"] + (["train + wider"] if wider else [])
-    own = f"train ({', '.join(a.fit_on)})" if a.fit_on else "train"  # how the rows name the fit on the model's scenes
     out = []
     for model in a.model:
         est = load_estimator(Path(model))
-        trained_on = est.meta["params"]["datasets"]
-        if a.fit_on and (unknown := sorted(set(a.fit_on) - set(trained_on))):
-            raise SystemExit(f"--fit-on {' '.join(unknown)}: {model} was trained on {', '.join(trained_on)}")
-        tr, va, _ = training_rows(root, a.fit_on or trained_on)
+        tr, va, _ = training_rows(root, fit_on or trained_on[model])
         fit_rows = {"train": tr + va}
 
         def stats_of(base: Path, rows: list[dict], est=est) -> np.ndarray:
@@ -217,7 +243,7 @@ def main() -> None:
                             "ratio-nomap": (fit_ratio(fit_x[fit], y, False), apply_ratio)}
                 for name, (ro, apply) in readouts.items():
                     for k, (_, rows) in sets.items():
-                        out.append({"model": model, "fitted_on": own if fit == "train" else fit, "definition": d,
+                        out.append({"model": model, "fitted_on": labels_of[fit], "definition": d,
                                     "readout": name, "images": k, "n": len(rows),
                                     **scores(apply(ro, scored[k]), labels(rows, d))})
 

@@ -290,7 +290,55 @@ def test_the_coverage_readout_fits_labels_whose_correction_changes_with_the_cove
     # per target: a target's interactions are those of the statistics it reads
     ro = rt.fit_coverage(x, y, feats, [feats, feats, feats[:3]])
     assert set(ro["target_features"][2]) == {*feats[:3], *(f"{s}*covered_fraction" for s in feats[:3])}
-    assert rt.apply_coverage(ro, x).shape == y.shape
+    np.testing.assert_allclose(rt.apply_coverage(ro, x), y, rtol=0.05)
+    # held as any read-out, through the names: a bed of sizes far beyond the fitted ones reads within the ratios of
+    # label to visible size it was fitted on
+    big = x.copy()
+    sizes = [STAT_NAMES.index(s) for s in ("d10_mm", "d50_mm", "d90_mm", "d10_v_mm", "d50_v_mm", "d90_v_mm",
+                                           "mean_mm", "std_mm")]
+    big[:, sizes] *= 10
+    seen = big[:, [STAT_NAMES.index(s) for s in ("d10_mm", "d50_mm", "d90_mm")]]
+    p = rt.apply_coverage(ro, big)
+    assert (p >= seen * np.array(ro["ratio_lo"]) - 1e-9).all() and (p <= seen * np.array(ro["ratio_hi"]) + 1e-9).all()
+
+
+def test_readout_transfer_scores_a_set_it_cannot_calibrate_as_nan_not_an_abort():
+    """bench/readout_transfer.py's `scores`: the leave-one-out calibrated error of a set is NaN where fewer than
+    calibrate's minimum of references read a finite size (two images; an image without grains), not an exception
+    that loses the run; with enough finite rows it is the error of those rows."""
+    rt = bench_module("readout_transfer")
+    rng = np.random.default_rng(2)
+    y = np.sort(rng.uniform(1, 10, (8, 3)), axis=1)
+    p = y * rng.uniform(0.9, 1.1, y.shape)
+    assert np.isnan(rt.scores(p[:2], y[:2])["loo_abs_err_pct"]).all()
+    q = p.copy()
+    q[:6] = np.nan  # six images without a reading: two left
+    assert np.isnan(rt.scores(q, y)["loo_abs_err_pct"]).all()
+    q = p.copy()
+    q[0] = np.nan
+    loo = rt.scores(q, y)["loo_abs_err_pct"]
+    assert np.isfinite(loo).all() and (np.array(loo) < 50).all()
+
+
+def test_readout_transfer_refuses_a_fit_on_dataset_the_model_was_not_trained_on_before_any_image(tmp_path):
+    """bench/readout_transfer.py --fit-on: a dataset outside the model's training datasets is refused in one line,
+    naming them, before any scene is read (the results folder does not even exist)."""
+    import subprocess
+    import sys
+
+    import torch
+
+    model = tmp_path / "model.pt"
+    torch.save({"meta": {"arch": "instances", "params": {"datasets": ["train", "train_sparse"]}}}, model)
+    config = tmp_path / "config.yaml"
+    config.write_text((REPO / "config" / "config.yaml").read_text().replace("results: results",
+                                                                          f"results: {tmp_path / 'nowhere'}"))
+    r = subprocess.run([sys.executable, str(REPO / "bench" / "readout_transfer.py"), "--model", str(model),
+                        "--config", str(config), "--fit-on", "train", "gravel"],
+                       capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert r.returncode != 0, r.stderr
+    assert "--fit-on gravel: not among the datasets" in r.stderr and "(train, train_sparse)" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
 
 
 def test_the_cell_histogram_reads_percentiles_inside_the_bins_that_hold_them():

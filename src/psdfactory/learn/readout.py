@@ -37,7 +37,7 @@ def fit_readout(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...] = READOU
                 features: tuple[str, ...] = READOUT_FEATURES,
                 target_features: tuple[tuple[str, ...], ...] | None = None,
                 names: tuple[str, ...] = STAT_NAMES) -> dict:
-    """A ridge read-out of the labels (N×3) from instance statistics (N×len(STAT_NAMES); the
+    """A ridge read-out of the labels (N×3) from instance statistics (N×len(names); the
     columns `features` are used), as plain lists: NaN features imputed with the training means,
     features standardised, the ridge strength (× N) picked by k-fold cross-validated mean R²
     where there are enough scenes. It records the range of each feature (`lo`, `hi`:
@@ -109,7 +109,7 @@ def _ridge_strength(x: np.ndarray, y: np.ndarray, alphas: tuple[float, ...],
 
 
 def apply_readout(readout: dict, x: np.ndarray, names: tuple[str, ...] = STAT_NAMES) -> np.ndarray:
-    """Calibrated d10/d50/d90 (N×3, mm) from instance statistics (N×len(STAT_NAMES)), sorted so
+    """Calibrated d10/d50/d90 (N×3, mm) from instance statistics (N×len(names)), sorted so
     d10 ≤ d50 ≤ d90. Each target is held within the ratios to the visible grains' size (VISIBLE)
     the labels had on the scenes it was fitted on: it corrects a reading as much as it did there
     and no more, so that where the linear fit extrapolates (`outside_domain`) it neither reads a
@@ -127,16 +127,16 @@ def apply_readout(readout: dict, x: np.ndarray, names: tuple[str, ...] = STAT_NA
     return np.sort(p, axis=1)
 
 
-def outside_domain(readout: dict, x: np.ndarray) -> list[str]:
-    """The features of one image's statistics (1 x len(STAT_NAMES)) that lie farther than
-    DOMAIN_MARGIN x the range the read-out was fitted on beyond that range, each as
+def outside_domain(readout: dict, x: np.ndarray, names: tuple[str, ...] = STAT_NAMES) -> list[str]:
+    """The features of one image's statistics (1 x len(names); `names` as `fit_readout` was given them)
+    that lie farther than DOMAIN_MARGIN x the range the read-out was fitted on beyond that range, each as
     "name value (fitted lo to hi)": where the read-out extrapolates. Empty inside it, and for a
     read-out fitted before ranges were recorded. A feature that was constant where it was
     fitted has no range to judge by, and a missing one (NaN: no grain) is imputed as the read-out
     imputes it: neither is named."""
     if readout.get("lo") is None or readout.get("hi") is None:
         return []
-    v = _impute(readout_columns(x, readout["features"]), np.asarray(readout["impute"], float))[0]
+    v = _impute(readout_columns(x, readout["features"], names), np.asarray(readout["impute"], float))[0]
     lo, hi = np.asarray(readout["lo"], float), np.asarray(readout["hi"], float)
     pad = DOMAIN_MARGIN * (hi - lo)
     out = ((v < lo - pad) | (v > hi + pad)) & (hi > lo)
