@@ -265,8 +265,8 @@ def test_the_coverage_readout_fits_labels_whose_correction_changes_with_the_cove
     """bench/readout_transfer.py's `ridge + coverage` read-out: labels whose ratio to the visible d50 grows with the
     covered fraction (hidden fines pull a dense bed's labels further) are fitted back, where the plain ridge read-out
     (one slope for every bed) cannot; the read-out applies through `apply_readout`'s names, per target as trained."""
-    from psdfactory.learn.instances.stats import READOUT_FEATURES, STAT_NAMES
-    from psdfactory.learn.readout import apply_readout, fit_readout
+    from psdfactory.learn.instances.stats import READOUT_FEATURES, SIZE_STATS, STAT_NAMES
+    from psdfactory.learn.readout import VISIBLE, apply_readout, fit_readout
 
     rt = bench_module("readout_transfer")
     rng = np.random.default_rng(1)
@@ -294,10 +294,8 @@ def test_the_coverage_readout_fits_labels_whose_correction_changes_with_the_cove
     # held as any read-out, through the names: a bed of sizes far beyond the fitted ones reads within the ratios of
     # label to visible size it was fitted on
     big = x.copy()
-    sizes = [STAT_NAMES.index(s) for s in ("d10_mm", "d50_mm", "d90_mm", "d10_v_mm", "d50_v_mm", "d90_v_mm",
-                                           "mean_mm", "std_mm")]
-    big[:, sizes] *= 10
-    seen = big[:, [STAT_NAMES.index(s) for s in ("d10_mm", "d50_mm", "d90_mm")]]
+    big[:, [STAT_NAMES.index(s) for s in SIZE_STATS]] *= 10
+    seen = big[:, [STAT_NAMES.index(s) for s in VISIBLE]]
     p = rt.apply_coverage(ro, big)
     assert (p >= seen * np.array(ro["ratio_lo"]) - 1e-9).all() and (p <= seen * np.array(ro["ratio_hi"]) + 1e-9).all()
 
