@@ -441,6 +441,53 @@ def test_calibration_basis_measures_a_scenes_own_mask_as_a_perfect_grain_finder(
     assert np.allclose(coarse[("feret-min", "number")][0], got[("feret-min", "number")][0], rtol=0.1)
 
 
+def test_calibration_basis_saves_every_reading_and_the_references(tmp_path):
+    """calibration_basis.py --save: the readings it scores (here a perfect grain finder's) and the scenes' labels,
+    in the scenes' order, to an .npz an analysis the table does not make can load."""
+    from psdfactory.io import write_png
+
+    cb = bench_module("calibration_basis")
+    root = tmp_path / "scenes"
+    for i, side in enumerate([8, 12, 16, 20]):
+        scene = root / f"s{i}"
+        scene.mkdir(parents=True)
+        mask = np.zeros((100, 100), np.uint16)
+        for k in range(4):
+            mask[5 + 24 * k:5 + 24 * k + side, 40:40 + side] = k + 1
+        write_png(scene / "mask.png", mask)
+        (scene / "image.png").write_bytes(b"")  # listed, not read, with --true-masks
+        (scene / "render.json").write_text(json.dumps({"mm_per_px": 0.5}))
+        (scene / "labels.json").write_text(json.dumps({f"d{q}_b_axis_mm": 0.5 * side for q in (10, 50, 90)}))
+    out = tmp_path / "readings.npz"
+    assert cb.main(["--true-masks", "--scenes", str(root), "--subset", "0", "--save", str(out)]) == 0
+    saved = np.load(out)
+    assert saved["scenes"].tolist() == ["s0", "s1", "s2", "s3"]
+    assert np.allclose(saved["reference"][:, 1], [4, 6, 8, 10])
+    assert np.allclose(saved["feret-min|number"][:, 1], saved["reference"][:, 1], rtol=0.05)
+    assert {"ecd|area", "feret-max|volume"} <= set(saved.files)
+
+
+def test_calibration_choice_finds_the_reading_that_calibrates_and_scores_itself_without_the_held_out_one(tmp_path,
+                                                                                                  capsys):
+    """calibration_choice.py: where one reading is exactly affine in the references and the fixed rule's is noise,
+    the choice and the committee predict each held-out reference from the others (nested) to ~0 error, while the
+    fixed rule's leave-one-out stays large; the table prints all three."""
+    cc = bench_module("calibration_choice")
+    rng = np.random.default_rng(1)
+    d50 = rng.uniform(2, 20, 9)
+    ref = np.stack([0.4 * d50, d50, 2 * d50], axis=1)
+    reads = {"b-axis|number": np.sort(rng.uniform(1, 30, (9, 3)), axis=1), "ecd|volume": 0.7 * ref + 0.5}
+    for how in ("choice", "committee"):
+        assert np.allclose(cc.nested_loo(reads, ref, how), ref, rtol=1e-6), how
+    out = tmp_path / "r.npz"
+    np.savez(out, reference=ref, scenes=np.array([f"s{i}" for i in range(9)]),
+             **{k: v for k, v in reads.items()})
+    assert cc.main([str(out)]) == 0
+    row = capsys.readouterr().out.splitlines()[-1].split()
+    fixed, choice, committee = (float(row[i]) for i in (4, 9, 14))  # d50 of each: "d10 / d50 / d90" cells
+    assert fixed > 10 and choice < 0.01 and committee < 0.01
+
+
 def test_relook_renders_the_same_scenes_in_another_look_and_leaves_the_sources_alone(tmp_path, tiny_results):
     """relook.py: each scene rendered again with a config's render block and --set render.* on top, at the
     settings asked (resolution, a bright table), its particles, poses and labels copied as they are."""
