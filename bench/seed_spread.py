@@ -467,7 +467,9 @@ def main() -> None:
     trained_on = psd_config.trained_datasets(cfg, archs)
     missing = [d for d in {*datasets, *trained_on} if not (results / d / "manifest" / "scenes").is_dir()]
     if missing:
-        sys.exit(f"no manifests for {', '.join(sorted(missing))} under {results}: run without --no-snakemake")
+        sys.exit(f"no manifests for {', '.join(sorted(missing))} under {results}: --results is the folder the "
+                 f"workflow made the datasets in (the config's `results`: {cfg['results']}); point it there, or run "
+                 "without --no-snakemake to make them")
 
     meta = {"config": str(Path(a.config)), "command": command, "cpu": cpu, "gpu": gpu_name(), "commit": commit()}
     # each model's seeds back to back, models in the order of --archs: a partial run holds whole spreads

@@ -66,6 +66,10 @@ def test_set_changes_the_recipe_only_and_write_config_gives_a_config_without_sna
                         str(REPO / "config" / "paper-cpu.yaml"), "--set", "train.epochs=0", "--write-config",
                         str(tmp_path / "bad.json")], capture_output=True, text=True, cwd=REPO)
     assert r.returncode != 0 and "epochs" in r.stderr and not (tmp_path / "bad.json").exists()
+    r = subprocess.run([sys.executable, str(REPO / "bench" / "seed_spread.py"), "--config",
+                        str(REPO / "config" / "paper-cpu.yaml"), "--no-snakemake", "--results", str(tmp_path / "x"),
+                        "--seed-list", "42"], capture_output=True, text=True, cwd=REPO)
+    assert r.returncode != 0 and "no manifests for" in r.stderr and "point it there" in r.stderr  # a wrong --results
 
 
 def test_seed_spread_knows_a_run_of_other_scenes_or_labels(tmp_path):
