@@ -147,7 +147,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--draws", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--save", type=Path, default=None, help="also write every reading (N x 3 per definition and "
-                    "weighting, keys 'definition|weighting') and the references to this .npz")
+                    "weighting, keys 'definition|weighting'), the references, their definition and weighting and "
+                    "the scenes' folders to this .npz (bench/calibration_choice.py reads it)")
     args = ap.parse_args(argv)
 
     from scipy.stats import spearmanr
@@ -181,7 +182,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.exit(1, f"calibration_basis.py: {e}\n")
     if args.save:  # every reading and the references, for an analysis this table does not make
         arrays = {f"{d}|{w}": p for (d, w), p in reads.items()}
-        np.savez(args.save, reference=ref, scenes=np.array([s.name for s in scenes]), **arrays)
+        np.savez(args.save, reference=ref, definition=args.label_definition, weighting=args.label_weighting,
+                 scenes=np.array([str(s.resolve()) for s in scenes]), **arrays)
     print(f"{len(scenes)} scenes; references: {args.label_definition}, {args.label_weighting}-weighted; {source}")
     head = f"{'reading':<22}{'rho d10/d50/d90':>18}{'uncal %':>20}{f'LOO all {len(scenes)} %':>20}"
     head += f"{'LOO affine %':>20}" + (f"{f'LOO of {args.subset} %':>20}" if args.subset else "")

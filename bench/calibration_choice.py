@@ -11,17 +11,21 @@ calibrate better. Two procedures that let the references decide, per target, sco
 - committee: every reading x method corrected, averaged with weights 1 / (its leave-one-out mean squared
   relative error on the references): a soft choice.
 
-Their error is the nested leave-one-out: each reference predicted by the procedure run on the others alone
-(the choice or the weights made again without it); the fixed rule's is its plain leave-one-out. Input: the
-.npz files `bench/calibration_basis.py --save` writes (one per model and scene set; references in the
-definition it was run with), and optionally a second definition read from the scenes' labels.json:
+Each row's d10/d50/d90 are sorted afterwards, as `calibrate`'s corrected values are. Their error is the nested
+leave-one-out: each reference predicted by the procedure run on the others alone (the choice or the weights
+made again without it, from the methods N - 1 references allow); the fixed rule's is its plain leave-one-out.
+Input: the .npz files `bench/calibration_basis.py --save` writes (one per model and scene set), whose references
+are of the definition and weighting it was run with; --also scores a second definition too, number-weighted,
+read from each scene's labels.json:
 
     .venv/bin/python bench/calibration_basis.py --model M --scenes /tmp/psd-paper-look/scenes \
         --mm-per-px 0.3 --subset 0 --save /tmp/r.paper.npz
     .venv/bin/python bench/calibration_choice.py /tmp/r.paper.npz
-    .venv/bin/python bench/calibration_choice.py /tmp/r.tiny.npz --also sieve --scenes results/train/scenes
+    .venv/bin/python bench/calibration_choice.py /tmp/r.test.npz --also sieve
 
-Synthetic scenes only: the development photos are for measuring, never for choosing (issue 24).
+(calibration_basis reads every scene folder under --scenes, every split alike: for one split, a folder of
+links to its scenes.) Synthetic scenes only: the development photos are for measuring, never for choosing
+(issue 24).
 """
 
 from __future__ import annotations
@@ -36,51 +40,48 @@ import numpy as np
 REL_FLOOR = 1e-8  # a candidate's mean squared relative error is at least this (an exact one does not divide by 0)
 
 
-def _column(p: np.ndarray, r: np.ndarray, method: str, k: int, new: np.ndarray) -> np.ndarray:
-    from psdfactory.learn import calibration as cal
-
-    return np.atleast_2d(cal.apply(cal.fit(p, r, method), new))[:, k]
-
-
-def loo_column(p: np.ndarray, r: np.ndarray, method: str, k: int) -> np.ndarray:
-    """Target k of each reference corrected by the correction fitted on the others."""
-    n = len(p)
-    return np.array([_column(p[np.arange(n) != i], r[np.arange(n) != i], method, k, p[i])[0] for i in range(n)])
-
-
 def methods_for(n: int) -> list[str]:
     from psdfactory.learn.calibration import ISOTONIC_FROM
 
     return ["affine"] + (["isotonic"] if n >= ISOTONIC_FROM else [])
 
 
-def candidate_scores(reads: dict[str, np.ndarray], r: np.ndarray, k: int) -> list[tuple[float, float, str, str]]:
-    """(leave-one-out mean |relative error| of target k, its mean square, reading, method) of every candidate that
-    fits."""
+def candidates(reads: dict[str, np.ndarray], r: np.ndarray) -> list[tuple[str, str, np.ndarray]]:
+    """(reading, method, N x 3 relative leave-one-out errors) of every candidate that can be fitted on `r`."""
+    from psdfactory import PsdError
+    from psdfactory.learn import calibration as cal
+
     out = []
     for key, p in reads.items():
+        if not np.isfinite(p).all():
+            continue
         for m in methods_for(len(r)):
             try:
-                rel = (loo_column(p, r, m, k) - r[:, k]) / r[:, k]
-            except Exception:  # a reading alike on every reference: nothing to fit
+                out.append((key, m, (cal.leave_one_out(p, r, m) - r) / r))
+            except PsdError:  # a reading alike on every reference: nothing to fit
                 continue
-            out.append((float(np.mean(np.abs(rel))), float(np.mean(rel ** 2)), key, m))
     return out
 
 
 def predict(reads: dict[str, np.ndarray], r: np.ndarray, new: dict[str, np.ndarray], how: str) -> np.ndarray:
-    """d10/d50/d90 of a new image (`new`: its readings) by `how` (choice | committee) run on `reads`, `r`."""
+    """d10/d50/d90 (sorted) of a new image (`new`: its readings) by `how` (choice | committee) run on `reads`, `r`."""
+    from psdfactory import PsdError
+    from psdfactory.learn import calibration as cal
+
+    cands = [c for c in candidates(reads, r) if np.isfinite(new[c[0]]).all()]
+    if not cands:
+        raise PsdError(f"no reading can be calibrated on these {len(r)} references")
+    corrected = {(key, m): cal.apply(cal.fit(reads[key], r, m), new[key]) for key, m, _ in cands}
     out = np.empty(3)
     for k in range(3):
-        scores = candidate_scores(reads, r, k)
         if how == "choice":
-            _, _, key, m = min(scores)
-            out[k] = _column(reads[key], r, m, k, new[key])[0]
+            key, m, _ = min(cands, key=lambda c: float(np.mean(np.abs(c[2][:, k]))))
+            out[k] = corrected[(key, m)][k]
         else:
-            w = np.array([1.0 / max(s2, REL_FLOOR) for _, s2, _, _ in scores])
-            v = np.array([_column(reads[key], r, m, k, new[key])[0] for _, _, key, m in scores])
+            w = np.array([1.0 / max(float(np.mean(c[2][:, k] ** 2)), REL_FLOOR) for c in cands])
+            v = np.array([corrected[(key, m)][k] for key, m, _ in cands])
             out[k] = float((w * v).sum() / w.sum())
-    return out
+    return np.sort(out)
 
 
 def nested_loo(reads: dict[str, np.ndarray], r: np.ndarray, how: str) -> np.ndarray:
@@ -91,6 +92,50 @@ def nested_loo(reads: dict[str, np.ndarray], r: np.ndarray, how: str) -> np.ndar
                              how) for i, m in enumerate(keep)])
 
 
+def fixed_basis(reads: dict[str, np.ndarray], definition: str, weighting: str) -> str:
+    """The reading `psdfactory calibrate` corrects for references of `definition`, `weighting` (`basis_for`)."""
+    from psdfactory import PsdError
+    from psdfactory.learn import calibration as cal
+
+    basis = cal.basis_for({"size_definition": definition, "weighting": weighting},
+                          lambda d, w: f"{d}|{w}" in reads, lambda d: "number")
+    key = f"{basis['size_definition']}|{basis['weighting']}"
+    if key not in reads:
+        raise PsdError(f"no reading {key} (the one calibrate corrects for {definition} {weighting}-weighted "
+                       f"references) among {', '.join(sorted(reads))}")
+    return key
+
+
+def load(path: Path, also: str | None) -> tuple[dict[str, np.ndarray], list[tuple[str, str, np.ndarray]]]:
+    """A --save file's readings and its reference sets: [(definition, weighting, N x 3)], --also's added."""
+    from psdfactory import PsdError
+    from psdfactory.psd import definition_targets
+
+    try:
+        z = np.load(path)
+    except (OSError, ValueError) as e:
+        raise PsdError(f"{path}: not readable as an .npz ({type(e).__name__}: {e})") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise PsdError(f"{path}: one array, not the .npz of calibration_basis.py --save")
+    missing = [k for k in ("reference", "scenes", "definition", "weighting") if k not in z.files]
+    reads = {k: z[k] for k in z.files if "|" in k}
+    if missing or not reads:
+        raise PsdError(f"{path}: not an .npz of calibration_basis.py --save (missing: "
+                       f"{', '.join(missing) or 'the readings'})")
+    sets = [(str(z["definition"]), str(z["weighting"]), z["reference"])]
+    if also:
+        keys, rows = definition_targets(also, "number"), []
+        for scene in z["scenes"]:
+            labels = Path(str(scene)) / "labels.json"
+            try:
+                lab = json.loads(labels.read_text())
+                rows.append([float(lab[t]) for t in keys])
+            except (OSError, ValueError, KeyError, TypeError) as e:
+                raise PsdError(f"--also {also}: {labels}: no {', '.join(keys)} ({type(e).__name__}: {e})") from None
+        sets.append((also, "number", np.array(rows)))
+    return reads, sets
+
+
 def mape(e: np.ndarray, r: np.ndarray) -> np.ndarray:
     return 100 * np.mean(np.abs(e - r) / r, axis=0)
 
@@ -98,33 +143,23 @@ def mape(e: np.ndarray, r: np.ndarray) -> np.ndarray:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("readings", type=Path, nargs="+", help=".npz files of bench/calibration_basis.py --save")
-    ap.add_argument("--definition", default="b-axis", help="the definition the .npz references are of (the "
-                    "reading the fixed rule corrects: it, number-weighted)")
     ap.add_argument("--also", default=None, help="a second reference definition, number-weighted, read from "
-                    "each scene's labels.json under --scenes")
-    ap.add_argument("--scenes", type=Path, default=None, help="with --also: the folder of the .npz's scenes")
+                    "each scene's labels.json (the .npz records where the scenes are)")
     args = ap.parse_args(argv)
-    if args.also and not args.scenes:
-        ap.error("--also needs --scenes (where the scenes' labels.json are)")
+    from psdfactory import PsdError
     from psdfactory.learn import calibration as cal
-    from psdfactory.psd import definition_targets
 
-    print(f"{'readings':<28}{'references':<12}{'fixed rule %':>20}{'choice %':>20}{'committee %':>20}")
+    print(f"{'readings':<28}{'references':<20}{'fixed rule %':>20}{'choice %':>20}{'committee %':>20}")
     for path in args.readings:
         try:
-            z = np.load(path)
-            reads = {k: z[k] for k in z.files if "|" in k}
-            sets = [(args.definition, z["reference"])]
-        except (OSError, ValueError, KeyError) as e:
-            ap.exit(1, f"calibration_choice.py: {path}: not an .npz of calibration_basis.py --save ({e})\n")
-        if args.also:
-            labels = [json.loads((args.scenes / str(s) / "labels.json").read_text()) for s in z["scenes"]]
-            keys = definition_targets(args.also, "number")
-            sets.append((args.also, np.array([[lab[t] for t in keys] for lab in labels], dtype=float)))
-        for name, r in sets:
-            fixed = mape(cal.leave_one_out(reads[f"{name}|number"], r), r)
-            cells = [fixed] + [mape(nested_loo(reads, r, how), r) for how in ("choice", "committee")]
-            print(f"{path.name:<28}{name:<12}" + "".join(f"{' / '.join(f'{v:4.1f}' for v in c):>20}" for c in cells))
+            reads, sets = load(path, args.also)
+            for definition, weighting, r in sets:
+                fixed = mape(cal.leave_one_out(reads[fixed_basis(reads, definition, weighting)], r), r)
+                cells = [fixed] + [mape(nested_loo(reads, r, how), r) for how in ("choice", "committee")]
+                print(f"{path.name:<28}{definition + ' ' + weighting:<20}"
+                      + "".join(f"{' / '.join(f'{v:4.1f}' for v in c):>20}" for c in cells))
+        except PsdError as e:
+            ap.exit(1, f"calibration_choice.py: {e}\n")
     return 0
 
 

@@ -465,17 +465,21 @@ def test_calibration_basis_saves_every_reading_and_the_references(tmp_path):
     out = tmp_path / "readings.npz"
     assert cb.main(["--true-masks", "--scenes", str(root), "--subset", "0", "--save", str(out)]) == 0
     saved = np.load(out)
-    assert saved["scenes"].tolist() == ["s0", "s1", "s2", "s3"]
+    assert saved["scenes"].tolist() == [str((root / f"s{i}").resolve()) for i in range(4)]
+    assert (str(saved["definition"]), str(saved["weighting"])) == ("b-axis", "number")
     assert np.allclose(saved["reference"][:, 1], [4, 6, 8, 10])
     assert np.allclose(saved["feret-min|number"][:, 1], saved["reference"][:, 1], rtol=0.05)
     assert {"ecd|area", "feret-max|volume"} <= set(saved.files)
 
 
-def test_calibration_choice_finds_the_reading_that_calibrates_and_scores_itself_without_the_held_out_one(tmp_path,
-                                                                                                  capsys):
+def test_calibration_choice_finds_the_reading_that_calibrates_and_scores_itself_without_the_held_out_one(
+        tmp_path, capsys, monkeypatch):
     """calibration_choice.py: where one reading is exactly affine in the references and the fixed rule's is noise,
-    the choice and the committee predict each held-out reference from the others (nested) to ~0 error, while the
-    fixed rule's leave-one-out stays large; the table prints all three."""
+    the choice and the committee predict each held-out reference from the others to ~0 error while the fixed
+    rule's leave-one-out stays large; no fit of the nested leave-one-out ever sees the reference it predicts; the
+    corrected d-values come out sorted; a file that is not a --save .npz is refused in one line."""
+    from psdfactory.learn import calibration as cal
+
     cc = bench_module("calibration_choice")
     rng = np.random.default_rng(1)
     d50 = rng.uniform(2, 20, 9)
@@ -483,13 +487,41 @@ def test_calibration_choice_finds_the_reading_that_calibrates_and_scores_itself_
     reads = {"b-axis|number": np.sort(rng.uniform(1, 30, (9, 3)), axis=1), "ecd|volume": 0.7 * ref + 0.5}
     for how in ("choice", "committee"):
         assert np.allclose(cc.nested_loo(reads, ref, how), ref, rtol=1e-6), how
+
+    seen, fit = [], cal.fit
+    monkeypatch.setattr(cal, "fit", lambda p, r, method=None: seen.append(np.asarray(r)[:, 1]) or fit(p, r, method))
+    for i in range(len(ref)):
+        others = np.arange(len(ref)) != i
+        seen.clear()
+        cc.predict({k: v[others] for k, v in reads.items()}, ref[others], {k: v[i] for k, v in reads.items()},
+                   "committee")
+        assert seen and not any(np.isclose(r, d50[i]).any() for r in seen)  # held out of every fit
+    monkeypatch.undo()
+    calls, predict = [], cc.predict  # and nested_loo hands predict the others only, the held-out one as new
+    monkeypatch.setattr(cc, "predict", lambda rd, r, new, how: calls.append((r[:, 1], new)) or predict(rd, r, new, how))
+    cc.nested_loo(reads, ref, "choice")
+    monkeypatch.undo()
+    assert len(calls) == len(ref)
+    for i, (r, new) in enumerate(calls):
+        assert np.allclose(new["ecd|volume"], reads["ecd|volume"][i]) and not np.isclose(r, d50[i]).any()
+
+    crossing = {"ecd|volume": reads["ecd|volume"][:, ::-1].copy()}  # d10 and d90 read swapped
+    assert (np.diff(cc.predict(crossing, ref, {"ecd|volume": crossing["ecd|volume"][0]}, "choice")) >= 0).all()
+
     out = tmp_path / "r.npz"
-    np.savez(out, reference=ref, scenes=np.array([f"s{i}" for i in range(9)]),
-             **{k: v for k, v in reads.items()})
+    np.savez(out, reference=ref, definition="b-axis", weighting="number",
+             scenes=np.array([str(tmp_path / f"s{i}") for i in range(9)]), **reads)
     assert cc.main([str(out)]) == 0
     row = capsys.readouterr().out.splitlines()[-1].split()
-    fixed, choice, committee = (float(row[i]) for i in (4, 9, 14))  # d50 of each: "d10 / d50 / d90" cells
+    fixed, choice, committee = (float(row[i]) for i in (5, 10, 15))  # d50 of each "d10 / d50 / d90" cell
     assert fixed > 10 and choice < 0.01 and committee < 0.01
+    np.save(tmp_path / "one.npy", ref)
+    with pytest.raises(SystemExit):
+        cc.main([str(tmp_path / "one.npy")])
+    assert "not the .npz of calibration_basis.py --save" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cc.main([str(out), "--also", "sieve"])  # its scenes have no labels.json
+    assert "--also sieve" in capsys.readouterr().err
 
 
 def test_relook_renders_the_same_scenes_in_another_look_and_leaves_the_sources_alone(tmp_path, tiny_results):
