@@ -154,7 +154,11 @@ def main(argv: list[str] | None = None) -> int:
     from scipy.stats import spearmanr
 
     from psdfactory import PsdError
+    from psdfactory.io import same_file
 
+    if args.save is not None and (args.save.is_dir() or (args.model and same_file(args.save, args.model))
+                                  or any(args.save.resolve().is_relative_to(d.resolve()) for d in args.scenes)):
+        ap.error(f"--save {args.save}: a folder, the model or inside a --scenes folder; give a new .npz file")
     scenes = sorted(s.parent for d in args.scenes for s in d.glob("*/labels.json") if (s.parent / "image.png").exists())
     if len(scenes) < 4:
         ap.error(f"{len(scenes)} scenes with image.png and labels.json under {args.scenes}: at least 4 needed")
@@ -181,9 +185,12 @@ def main(argv: list[str] | None = None) -> int:
     except PsdError as e:
         ap.exit(1, f"calibration_basis.py: {e}\n")
     if args.save:  # every reading and the references, for an analysis this table does not make
+        from psdfactory.io import write_npz
+
         arrays = {f"{d}|{w}": p for (d, w), p in reads.items()}
-        np.savez(args.save, reference=ref, definition=args.label_definition, weighting=args.label_weighting,
-                 scenes=np.array([str(s.resolve()) for s in scenes]), **arrays)
+        write_npz(args.save, reference=ref, definition=np.array(args.label_definition),
+                  weighting=np.array(args.label_weighting), scenes=np.array([str(s.resolve()) for s in scenes]),
+                  **arrays)
     print(f"{len(scenes)} scenes; references: {args.label_definition}, {args.label_weighting}-weighted; {source}")
     head = f"{'reading':<22}{'rho d10/d50/d90':>18}{'uncal %':>20}{f'LOO all {len(scenes)} %':>20}"
     head += f"{'LOO affine %':>20}" + (f"{f'LOO of {args.subset} %':>20}" if args.subset else "")

@@ -41,9 +41,10 @@ REL_FLOOR = 1e-8  # a candidate's mean squared relative error is at least this (
 
 
 def methods_for(n: int) -> list[str]:
-    from psdfactory.learn.calibration import ISOTONIC_FROM
+    """The corrections a choice may take at `n` references: affine, and the one `calibrate` fits there."""
+    from psdfactory.learn.calibration import method_for
 
-    return ["affine"] + (["isotonic"] if n >= ISOTONIC_FROM else [])
+    return list(dict.fromkeys(["affine", method_for(n)]))
 
 
 def candidates(reads: dict[str, np.ndarray], r: np.ndarray) -> list[tuple[str, str, np.ndarray]]:
@@ -109,16 +110,15 @@ def fixed_basis(reads: dict[str, np.ndarray], definition: str, weighting: str) -
 def load(path: Path, also: str | None) -> tuple[dict[str, np.ndarray], list[tuple[str, str, np.ndarray]]]:
     """A --save file's readings and its reference sets: [(definition, weighting, N x 3)], --also's added."""
     from psdfactory import PsdError
+    from psdfactory.io import read_npz
     from psdfactory.psd import definition_targets
 
     try:
-        z = np.load(path)
-    except (OSError, ValueError) as e:
-        raise PsdError(f"{path}: not readable as an .npz ({type(e).__name__}: {e})") from None
-    if not isinstance(z, np.lib.npyio.NpzFile):
-        raise PsdError(f"{path}: one array, not the .npz of calibration_basis.py --save")
-    missing = [k for k in ("reference", "scenes", "definition", "weighting") if k not in z.files]
-    reads = {k: z[k] for k in z.files if "|" in k}
+        z = read_npz(path)
+    except PsdError as e:
+        raise PsdError(f"{e} (not the .npz of calibration_basis.py --save?)") from None
+    missing = [k for k in ("reference", "scenes", "definition", "weighting") if k not in z]
+    reads = {k: v for k, v in z.items() if "|" in k}
     if missing or not reads:
         raise PsdError(f"{path}: not an .npz of calibration_basis.py --save (missing: "
                        f"{', '.join(missing) or 'the readings'})")

@@ -462,6 +462,10 @@ def test_calibration_basis_saves_every_reading_and_the_references(tmp_path):
         (scene / "image.png").write_bytes(b"")  # listed, not read, with --true-masks
         (scene / "render.json").write_text(json.dumps({"mm_per_px": 0.5}))
         (scene / "labels.json").write_text(json.dumps({f"d{q}_b_axis_mm": 0.5 * side for q in (10, 50, 90)}))
+    for bad in (root, root / "s0" / "r.npz"):  # a folder, a file inside the scenes: refused before any work
+        with pytest.raises(SystemExit):
+            cb.main(["--true-masks", "--scenes", str(root), "--subset", "0", "--save", str(bad)])
+    assert not (root / "s0" / "r.npz").exists()
     out = tmp_path / "readings.npz"
     assert cb.main(["--true-masks", "--scenes", str(root), "--subset", "0", "--save", str(out)]) == 0
     saved = np.load(out)
