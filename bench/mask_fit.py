@@ -9,7 +9,11 @@ axis (the photo sets' size definition), the share of the found grains' pixels th
 calls background (gaps, shadows, table) or another grain, and the share of the image each mask
 leaves as background. Then the outline band the reference mask keeps between grains that meet
 (`learn.instances.scoring.outline_band_px`: 0 where its grains touch, as a rendered scene's) and
-the two ratios again against its grains grown back by half of it (`restore_outlines`).
+the two ratios again against its grains grown back by half of it (`restore_outlines`). Last, what the
+grains the match missed are (`learn.instances.scoring.error_kinds`, on the mask as drawn): the
+reference grains no found grain matches, cut into pieces, merged with a neighbour into one found
+grain, missed or misfit; the found grains that match none, a merge of several, on the reference's
+background, a piece of one grain or a misfit.
 
 Photo sets (a folder with labels.csv and <stem>_mask.png, as data/photos/real) are read at their
 labels.csv scale, with --auto-scale as the default config's photo set reads them; synthetic test
@@ -60,7 +64,7 @@ def fit_as_drawn(found: np.ndarray, ref: np.ndarray, mm_per_px: float, ref_on_bo
     grains the border rule leaves out, where decided on another copy of it)."""
     from psdfactory.deploy.photos import IOU
     from psdfactory.learn.instances.measure import measure_instances
-    from psdfactory.learn.instances.scoring import match_off_border
+    from psdfactory.learn.instances.scoring import error_kinds, match_off_border
 
     bm = match_off_border(found, ref, IOU, true_on_border=ref_on_border)
     fa = np.bincount(found.ravel(), minlength=int(found.max()) + 1)
@@ -84,6 +88,7 @@ def fit_as_drawn(found: np.ndarray, ref: np.ndarray, mm_per_px: float, ref_on_bo
         "on_other_grain": float(((under != 0) & (under != owner[found[sel]])).mean()) if sel.any() else np.nan,
         "ref_background": float((ref == 0).mean()),
         "found_background": float((found == 0).mean()),
+        "kinds": error_kinds(found, ref, bm),
     }
 
 
@@ -133,6 +138,24 @@ def table(title: str, rows: list[tuple[str, dict]], each: bool) -> None:
                                                     for c in COLUMNS) + " |")
 
 
+def kinds_table(title: str, rows: list[tuple[str, dict]], each: bool) -> None:
+    """The unmatched grains by kind (error_kinds), per image and summed."""
+    from psdfactory.learn.instances.scoring import FN_KINDS, FP_KINDS
+
+    cols = [("fn", k) for k in FN_KINDS] + [("fp", k) for k in FP_KINDS]
+    print(f"\n{title}: the grains the match missed, by kind\n| image | matched | "
+          + " | ".join(f"{side.upper()} {k}" for side, k in cols) + " |\n|---|---|" + "---|" * len(cols))
+
+    def line(name: str, matched: int, kinds: list) -> None:
+        print(f"| {name} | {matched} | " + " | ".join(str(sum(getattr(k, side)[kind] for k in kinds))
+                                                   for side, kind in cols) + " |")
+
+    if each:
+        for name, r in rows:
+            line(name, r["matched"], [r["kinds"]])
+    line(f"sum of {len(rows)}", sum(r["matched"] for _, r in rows), [r["kinds"] for _, r in rows])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", type=Path, required=True, help="an instance model.pt")
@@ -145,10 +168,15 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="mask-fit-"))
     try:
         for folder in a.photos:
-            table(f"{folder} ({'--auto-scale' if a.auto_scale else 'at the labels scale'})",
-                  photo_set(a.model, folder, a.auto_scale, work / folder.name), each=True)
+            title = f"{folder} ({'--auto-scale' if a.auto_scale else 'at the labels scale'})"
+            rows = photo_set(a.model, folder, a.auto_scale, work / folder.name)
+            table(title, rows, each=True)
+            kinds_table(title, rows, each=True)
         for ds in a.datasets:
-            table(f"{a.results}/{ds}, {a.split} split", scenes(a.model, a.results, ds, a.split, work), each=False)
+            title = f"{a.results}/{ds}, {a.split} split"
+            rows = scenes(a.model, a.results, ds, a.split, work)
+            table(title, rows, each=False)
+            kinds_table(title, rows, each=False)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

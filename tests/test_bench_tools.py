@@ -191,6 +191,13 @@ def test_mask_fit_measures_how_much_fatter_the_found_grains_are():
     assert r["ref_background"] == pytest.approx(1 - 200 / 1600)
     assert r["found_background"] == pytest.approx(1 - 288 / 1600)
     assert r["band_px"] == 0 and r["minor_ratio_restored"] == r["minor_ratio"]  # two grains far apart: no band
+    assert sum(r["kinds"].fn.values()) == sum(r["kinds"].fp.values()) == 0  # both matched: nothing to sort
+    # grain 2 found in three pieces (none with IoU 0.5) and a grain on the background: their kinds
+    found[19:31, 21:33] = 0
+    found[20:30, 22:25], found[20:30, 25:29], found[20:30, 29:32], found[34:38, 2:6] = 3, 4, 6, 5
+    r = fit(found, ref, 0.5)
+    assert r["kinds"].fn == {"cut": 1, "merged": 0, "missed": 0, "misfit": 0}
+    assert r["kinds"].fp == {"merge": 0, "background": 1, "piece": 3, "misfit": 0}
     # a reference drawn with a 4 px outline band between its 12 px squares; the grains found meet at its middle
     ref = np.zeros((64, 64), np.int64)
     found = np.zeros_like(ref)

@@ -232,6 +232,39 @@ def test_the_border_rule_by_hand():
     assert (m.tp, m.fp, m.fn, m.left_out_true) == (0, 0, 3, 1) and m.recall == 0 and np.isnan(m.precision)
 
 
+# 40 x 40 px. Reference 1 found in three pieces; 2 and 3, side by side, found as one grain (IoU 24 / 54
+# each); 4 not found; 5 found shifted (IoU 36 / 92); 6 found exactly. Found 15 lies on the background,
+# 16 on the border matching nothing (left out, of no kind).
+KIND_TRUE = {1: (2, 9, 2, 11), 2: (2, 5, 20, 25), 3: (6, 9, 20, 25), 4: (14, 19, 2, 7), 5: (14, 21, 14, 21),
+             6: (30, 37, 30, 37)}
+KIND_PRED = {10: (2, 9, 2, 4), 11: (2, 9, 5, 7), 17: (2, 9, 8, 11), 12: (2, 10, 20, 25), 13: (16, 23, 16, 23),
+             14: (30, 37, 30, 37), 15: (30, 35, 2, 7), 16: (0, 1, 30, 35)}
+
+
+def test_error_kinds_by_hand():
+    from psdfactory.learn.instances.scoring import error_kinds
+
+    true, pred = rect_mask((40, 40), KIND_TRUE), rect_mask((40, 40), KIND_PRED)
+    m = match_off_border(pred, true)
+    assert (m.tp, m.fp, m.fn, m.left_out_pred) == (1, 6, 5, 1)
+    assert sorted(m.fn_ids.tolist()) == [1, 2, 3, 4, 5] and sorted(m.fp_ids.tolist()) == [10, 11, 12, 13, 15, 17]
+    k = error_kinds(pred, true, m)
+    assert k.fn == {"cut": 1, "merged": 2, "missed": 1, "misfit": 1}
+    assert k.fp == {"merge": 1, "background": 1, "piece": 3, "misfit": 1}
+    # found 13 lies more than half inside reference 5 but is as large: a misfit, not a piece; and where the
+    # two grains of the merge are found alone, the merge is gone and the other kinds stay
+    alone = pred.copy()
+    alone[2:11, 20:26] = 0
+    alone[2:6, 20:26], alone[6:10, 20:26] = 18, 19
+    k = error_kinds(alone, true, match_off_border(alone, true))
+    assert k.fn == {"cut": 1, "merged": 0, "missed": 1, "misfit": 1}
+    assert k.fp == {"merge": 0, "background": 1, "piece": 3, "misfit": 1}
+    # nothing found: every reference grain is missed
+    empty = np.zeros((40, 40), np.uint16)
+    k = error_kinds(empty, true, match_off_border(empty, true))
+    assert k.fn["missed"] == 6 and sum(k.fp.values()) == 0
+
+
 # ---- size errors and the PSD, by hand ----------------------------------------------------------------------
 
 # Found at the network's scale (20 x 20 px at 1.0 mm/px, half the photo's 0.5 mm/px): A' = reference A

@@ -125,6 +125,8 @@ class BorderMatch:
     precision: float  # tp / (tp + fp) (NaN without either)
     recall: float  # tp / (tp + fn) (NaN without a scored reference grain)
     f1: float  # 2 tp / (2 tp + fp + fn) (NaN without any)
+    fp_ids: np.ndarray  # the predicted grains counted as false positives
+    fn_ids: np.ndarray  # the reference grains counted as false negatives
 
 
 def match_off_border(pred_mask: np.ndarray, true_mask: np.ndarray, iou: float = 0.5,
@@ -145,11 +147,80 @@ def match_off_border(pred_mask: np.ndarray, true_mask: np.ndarray, iou: float = 
     tp, fp = int(scored.sum()), int((~on_edge).sum())
     n_true = len(true_present) - int(np.isin(true_present, true_edge).sum())
     nan = float("nan")
+    fn_ids = true_present[~np.isin(true_present, true_edge) & ~np.isin(true_present, m.true_ids)]
     return BorderMatch(
         pred_ids=m.pred_ids[scored], true_ids=m.true_ids[scored], iou=m.iou[scored], tp=tp, fp=fp, fn=n_true - tp,
         left_out_pred=int(on_edge.sum()) + int((~scored).sum()), left_out_true=len(true_present) - n_true,
         precision=tp / (tp + fp) if tp + fp else nan, recall=tp / n_true if n_true else nan,
-        f1=f1_score(tp, tp + fp, n_true))
+        f1=f1_score(tp, tp + fp, n_true), fp_ids=unmatched[~on_edge], fn_ids=fn_ids)
+
+
+# What became of each grain a match missed. The share of a grain's pixels that decides, each way:
+KIND_SHARE = 0.5
+FN_KINDS = ("cut", "merged", "missed", "misfit")
+FP_KINDS = ("merge", "background", "piece", "misfit")
+
+
+@dataclass(frozen=True)
+class ErrorKinds:
+    """Why a segmentation's false negatives and false positives are what they are (`error_kinds`)."""
+
+    fn: dict[str, int]  # per kind of FN_KINDS, the reference grains no found grain matches
+    fp: dict[str, int]  # per kind of FP_KINDS, the found grains that match none
+
+
+def error_kinds(pred_mask: np.ndarray, true_mask: np.ndarray, match: BorderMatch) -> ErrorKinds:
+    """Each false negative and false positive of `match` (the two masks' `match_off_border`) sorted
+    into one kind, the first that applies, "more than half" meaning a share above KIND_SHARE of a
+    grain's pixels:
+
+    - a reference grain no found grain matches is `cut` where two or more found grains lie more
+      than half inside it; `merged` where the found grain overlapping it most holds more than half
+      of it and of another reference grain too (one found grain over several); `missed` where the
+      found grains together hold no more than half of it; else `misfit` (found whole and alone, but
+      outlined too differently for the IoU);
+    - a found grain that matches none is a `merge` where it holds more than half of each of two or
+      more reference grains; `background` where more than half of it lies on the reference's
+      background (gaps, sand, a scale card); a `piece` where more than half of it lies inside one
+      reference grain and it is less than half that grain's size; else `misfit`.
+
+    The counts add up to the match's fn and fp."""
+    pids, tids, pi, ti, inter = _overlaps(check_mask(pred_mask), check_mask(true_mask))
+    area_p = np.bincount(pi, weights=inter, minlength=len(pids))
+    area_t = np.bincount(ti, weights=inter, minlength=len(tids))
+    p_index = dict(zip(pids.tolist(), range(len(pids)), strict=True))
+    t_index = dict(zip(tids.tolist(), range(len(tids)), strict=True))
+    big = inter > KIND_SHARE * area_t[ti]  # the pair holds more than half of its reference grain
+    fn = dict.fromkeys(FN_KINDS, 0)
+    for t in (t_index[int(i)] for i in match.fn_ids):
+        sel = (ti == t) & (pi > 0)
+        ps, ov = pi[sel], inter[sel]
+        if (ov > KIND_SHARE * area_p[ps]).sum() >= 2:
+            kind = "cut"
+        elif len(ps) and ov.max() > KIND_SHARE * area_t[t] and (big & (pi == ps[ov.argmax()]) & (ti != t)
+                                                                  & (ti > 0)).any():
+            kind = "merged"
+        elif ov.sum() <= KIND_SHARE * area_t[t]:
+            kind = "missed"
+        else:
+            kind = "misfit"
+        fn[kind] += 1
+    fp = dict.fromkeys(FP_KINDS, 0)
+    for p in (p_index[int(i)] for i in match.fp_ids):
+        sel = pi == p
+        ts, ov = ti[sel], inter[sel]
+        grains = ts > 0
+        inside = ov > KIND_SHARE * area_p[p]
+        if (big[sel] & grains).sum() >= 2:
+            kind = "merge"
+        elif (inside & ~grains).any():
+            kind = "background"
+        elif (inside & grains & (area_p[p] < KIND_SHARE * area_t[ts])).any():
+            kind = "piece"
+        else:
+            kind = "misfit"
+        fp[kind] += 1
+    return ErrorKinds(fn=fn, fp=fp)
 
 
 def fully_visible(true_mask: np.ndarray, z_by_id: np.ndarray) -> np.ndarray:
