@@ -283,7 +283,8 @@ def _fake_reading(mask: np.ndarray, mm_per_px: float):
 
 
 def test_size_errors_and_psd_by_hand(tmp_path):
-    from psdfactory.deploy.photos import PhotoScorer, read_mask
+    from psdfactory.deploy.photos import TABLE_COLUMNS, PhotoScorer, read_mask, table_row
+    from psdfactory.learn.instances.scoring import FN_KINDS, FP_KINDS
 
     folder = make_photo_set(tmp_path / "ph", n=1)
     s = photoset.check(validate(photo_config(folder)))["field"]
@@ -307,8 +308,17 @@ def test_size_errors_and_psd_by_hand(tmp_path):
     assert [r["psd_mm"][n] for n in ("d10", "d50", "d90")] == pytest.approx([a, (a + b) / 2, b])
     assert [r["psd_rel_err"][n] for n in ("d10", "d50", "d90")] == pytest.approx(
         [(a - 4) / 4, ((a + b) / 2 - 6) / 6, (b - 8) / 8])
+    assert r["error_kinds"] == {"fn": dict.fromkeys(FN_KINDS, 0), "fp": dict.fromkeys(FP_KINDS, 0)}
     pooled = scorer.pooled()
     assert pooled["detection"]["f1"] == 1.0 and pooled["size_error"]["size_definition"]["n"] == 2
+    # B not found: a miss, in the photo's row, its photos.csv columns and the set's sum
+    r2 = scorer.add(photo, _fake_reading(rect_mask((20, 20), {1: FOUND[1], 3: FOUND[3]}), 1.0), ref)
+    assert r2["detection"]["fn"] == 1 and r2["error_kinds"]["fn"] == {**dict.fromkeys(FN_KINDS, 0), "missed": 1}
+    row = table_row(photo, {**r2, "network_hw": (20, 20), "overlay": "a.png"}, "ellipse-minor",
+                    {"size_definition": "sieve", "weighting": "number"})
+    assert (row["fn_missed"], row["fn_cut"], row["fp_background"]) == (1, 0, 0)
+    assert set(row) <= set(TABLE_COLUMNS) and {"fn_merged", "fp_piece"} <= set(row)
+    assert scorer.pooled()["error_kinds"]["fn"]["missed"] == 1
     assert pooled["psd_abs_rel_err"]["d90"] == pytest.approx(abs(b - 8) / 8)
     # a model that finds no grains: its own reading against the reference, nothing else
     cnn = PhotoScorer(SimpleNamespace(finds_grains=False), s).add(photo, SimpleNamespace(d_mm=np.array([5, 6, 10.0])),

@@ -13,6 +13,10 @@ What is measured, per photo and pooled over the set:
   its network scale) is resized nearest-neighbour to the photo's size, so the reference stays
   exactly the peer's grains (resizing the reference instead would merge or drop its smallest
   grains); whether a found grain touches the border is the estimator's own call, on its mask.
+  What the misses are (`error_kinds`): each reference grain not matched as cut into pieces,
+  merged into one found grain with a neighbour, missed or misfit, and each found grain not
+  matched as a merge of several, on the reference's background, a piece of one or a misfit
+  (photos.csv: `fn_<kind>`, `fp_<kind>`).
 - **grain size error** of the matched grains not touching the border: median and p90 of
   |est − ref| / ref, of the grain's size in the set's size definition (both measured the same
   way, by `learn.instances.measure`: ours on the estimator's mask at its scale, the reference's
@@ -44,6 +48,7 @@ import numpy as np
 from .. import PsdError
 from ..io import atomic_path, open_image, read_photo, write_json
 from ..learn.estimator import Estimator, Reading, reading_of
+from ..learn.instances.scoring import FN_KINDS, FP_KINDS
 from ..photoset import Photo, PhotoSet
 from ..psd import NAMES, weighted_percentiles
 from .predict import (
@@ -119,6 +124,7 @@ class PhotoScorer:
         self.est, self.set, self.outlines_restored = est, photos, outlines_restored
         self.measure = MEASURE_OF[photos.size_definition]
         self.counts = np.zeros(5, np.int64)  # tp, fp, fn, left out found, left out reference
+        self.kinds: dict[str, dict[str, int]] = {}  # the FN and FP of every photo by kind, summed (error_kinds)
         self.pairs: dict[str, list] = {"est": [], "sieve": [], "ref": []}
         self.psd_err: list[list[float | None]] = []
 
@@ -158,7 +164,7 @@ class PhotoScorer:
             self.psd_err.append(relative(reading.d_mm, ref))
             return row
         from ..learn.instances.draw import resize_mask
-        from ..learn.instances.scoring import match_off_border, size_errors
+        from ..learn.instances.scoring import error_kinds, match_off_border, size_errors
 
         res = reading.grains
         m = res.measurements
@@ -174,6 +180,12 @@ class PhotoScorer:
         bm = match_off_border(pred, ref_mask, IOU, pred_on_border=m.ids[m.touches_edge], true_on_border=on_border)
         counts = (bm.tp, bm.fp, bm.fn, bm.left_out_pred, bm.left_out_true)
         self.counts += counts
+        ek = error_kinds(pred, ref_mask, bm)
+        kinds = {"fn": ek.fn, "fp": ek.fp}
+        for side, by_kind in kinds.items():
+            for kind, n in by_kind.items():
+                self.kinds.setdefault(side, {}).setdefault(kind, 0)
+                self.kinds[side][kind] += n
         ref_size = np.full(int(rm.ids.max(initial=0)) + 1, np.nan)
         ref_size[rm.ids] = getattr(rm, self.measure)
         k = np.searchsorted(m.ids, bm.pred_ids)
@@ -181,7 +193,7 @@ class PhotoScorer:
         pairs = {"est": size[k[inner]], "sieve": res.sizes_mm[k[inner]], "ref": ref_size[bm.true_ids[inner]]}
         for key, v in pairs.items():
             self.pairs[key] += v.tolist()
-        row.update(n_reference=int(bm.tp + bm.fn), detection=detection(*counts),
+        row.update(n_reference=int(bm.tp + bm.fn), detection=detection(*counts), error_kinds=kinds,
                    size_error={"size_definition": size_errors(pairs["est"], pairs["ref"]),
                                "sieve": size_errors(pairs["sieve"], pairs["ref"])})
         return row
@@ -195,6 +207,7 @@ class PhotoScorer:
                                       for j in range(3)])}
         if self.est.finds_grains and self.set.has_masks:
             out["detection"] = detection(*map(int, self.counts))
+            out["error_kinds"] = self.kinds
             out["size_error"] = {"size_definition": size_errors(self.pairs["est"], self.pairs["ref"]),
                                  "sieve": size_errors(self.pairs["sieve"], self.pairs["ref"])}
         return out
@@ -258,6 +271,7 @@ def _caption(arch: str, photo: Photo, row: dict, definition: str) -> str:
 
 TABLE_COLUMNS = ["image", "mm_per_px", "network_h", "network_w", "n_found", "n_found_off_border", "n_reference",
                  "tp", "fp", "fn", "left_out_found", "left_out_reference", "precision", "recall", "f1",
+                 *(f"fn_{k}" for k in FN_KINDS), *(f"fp_{k}" for k in FP_KINDS),
                  "size_err_median", "size_err_p90", "sieve_err_median", "sieve_err_p90",
                  *(f"{n}_mm" for n in NAMES), *(f"reference_{n}_mm" for n in NAMES), *(f"rel_err_{n}" for n in NAMES),
                  "psd_size_definition", *(f"reading_{n}_mm" for n in NAMES), "reading_size_definition",
@@ -282,6 +296,8 @@ def table_row(photo: Photo, r: dict, psd_definition: str, reading: dict) -> dict
     out.update({k: r.get(k) for k in ("n_found", "n_found_off_border", "n_reference")})
     out.update({k: det.get(k) for k in ("tp", "fp", "fn", "left_out_found", "left_out_reference", "precision",
                                         "recall", "f1")})
+    for side, by_kind in (r.get("error_kinds") or {}).items():
+        out.update({f"{side}_{kind}": n for kind, n in by_kind.items()})
     out.update(size_err_median=se["size_definition"].get("median"), size_err_p90=se["size_definition"].get("p90"),
                sieve_err_median=se["sieve"].get("median"), sieve_err_p90=se["sieve"].get("p90"))
     for n in NAMES:
