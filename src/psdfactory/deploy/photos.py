@@ -124,7 +124,8 @@ class PhotoScorer:
         self.est, self.set, self.outlines_restored = est, photos, outlines_restored
         self.measure = MEASURE_OF[photos.size_definition]
         self.counts = np.zeros(5, np.int64)  # tp, fp, fn, left out found, left out reference
-        self.kinds: dict[str, dict[str, int]] = {}  # the FN and FP of every photo by kind, summed (error_kinds)
+        # the FN and FP of every photo by kind, summed (error_kinds)
+        self.kinds = {"fn": dict.fromkeys(FN_KINDS, 0), "fp": dict.fromkeys(FP_KINDS, 0)}
         self.pairs: dict[str, list] = {"est": [], "sieve": [], "ref": []}
         self.psd_err: list[list[float | None]] = []
 
@@ -184,7 +185,6 @@ class PhotoScorer:
         kinds = {"fn": ek.fn, "fp": ek.fp}
         for side, by_kind in kinds.items():
             for kind, n in by_kind.items():
-                self.kinds.setdefault(side, {}).setdefault(kind, 0)
                 self.kinds[side][kind] += n
         ref_size = np.full(int(rm.ids.max(initial=0)) + 1, np.nan)
         ref_size[rm.ids] = getattr(rm, self.measure)
