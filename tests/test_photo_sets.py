@@ -319,6 +319,10 @@ def test_size_errors_and_psd_by_hand(tmp_path):
     assert (row["fn_missed"], row["fn_cut"], row["fp_background"]) == (1, 0, 0)
     assert set(row) <= set(TABLE_COLUMNS) and {"fn_merged", "fp_piece"} <= set(row)
     assert scorer.pooled()["error_kinds"]["fn"]["missed"] == 1
+    from psdfactory.report import misses_line
+
+    assert misses_line(r2["error_kinds"]).startswith(
+        "not matched: 1 reference grains (0 cut, 0 merged, 1 missed, 0 misfit), 0 grains found (0 merge, ")
     assert pooled["psd_abs_rel_err"]["d90"] == pytest.approx(abs(b - 8) / 8)
     # a model that finds no grains: its own reading against the reference, nothing else
     cnn = PhotoScorer(SimpleNamespace(finds_grains=False), s).add(photo, SimpleNamespace(d_mm=np.array([5, 6, 10.0])),
@@ -664,7 +668,8 @@ def test_a_reading_that_is_no_size_distribution_is_said_beside_its_figures(tmp_p
     assert all(not r["warning"].startswith("field/") for r in m["photos"].values())  # the photo is its row's
     rows = list(csv.DictReader(open(out / "photos.csv")))
     assert [r["warning"] for r in rows] == [m["photos"][r["image"]]["warning"] for r in rows]
-    head, table, _, warned = photo_sections({"resnet18": {"field": m}})["field"]["tables"]["resnet18"]
+    head, table, _, warned, misses = photo_sections({"resnet18": {"field": m}})["field"]["tables"]["resnet18"]
+    assert misses == []  # a CNN finds no grains: no misses to sort
     d_col = head.index("d10 / d50 / d90 (mm)")
     assert all(row[d_col].startswith("⚠ ") for row in table[:2]) and not table[2][d_col].startswith("⚠")
     assert [w.split(":")[0] for w in warned] == ["⚠ a.png", "⚠ b.png"]

@@ -635,8 +635,19 @@ def photo_sections(photos: dict[str, dict[str, dict]]) -> dict[str, dict]:
                     f"finds no grains: its own reading, {m['psd_size_definition']} size")
             # the warnings on its readings (evaluate-photos'), under its table: their d-values are marked ⚠ in it
             warned = [f"⚠ {name}: {r['warning']}" for name, r in m["photos"].items() if r.get("warning")]
-            sec["tables"][arch] = (*photo_table(m), what, warned)
+            # what its grains not matched are (evaluate-photos' error_kinds), a line per photo under the table
+            misses = [f"{name}: {misses_line(r['error_kinds'])}" for name, r in m["photos"].items()
+                      if r.get("error_kinds")]
+            sec["tables"][arch] = (*photo_table(m), what, warned, misses)
     return out
+
+
+def misses_line(kinds: dict[str, dict[str, int]]) -> str:
+    """A photo's unmatched grains by kind (learn.instances.scoring.error_kinds), in words."""
+    fn, fp = kinds["fn"], kinds["fp"]
+    return (f"not matched: {sum(fn.values())} reference grains ({', '.join(f'{n} {k}' for k, n in fn.items())}), "
+            f"{sum(fp.values())} grains found ({', '.join(f'{n} {k}' for k, n in fp.items())}); "
+            "the kinds: docs/photos.md, \"What the misses are\"")
 
 
 def photo_overlays(photos: dict[str, dict[str, dict]], files: dict[str, dict[str, Path]],
@@ -1001,8 +1012,8 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
                _md_table(*paper3), ""]
     for s, models in photo_sections(photos).items():
         md += [f"## Photos: {s}", "", models["about"], "", PHOTOS_NOTE, ""]
-        for a, (head, rows, what, warned) in models["tables"].items():
-            md += [f"### {a} ({what})", "", _md_table(head, rows), "", *(f"{w}  " for w in warned), ""]
+        for a, (head, rows, what, warned, misses) in models["tables"].items():
+            md += [f"### {a} ({what})", "", _md_table(head, rows), "", *(f"{w}  " for w in (*warned, *misses)), ""]
         md += [f"![{c}](figures/{p.name})" for p, c in photo_figs.get(s, [])] + [""]
     if inst_rows:
         md += ["## Instance estimator", "", INSTANCE_NOTE, "", _md_table(*inst_compact), "",
@@ -1039,9 +1050,9 @@ def build_report(config: dict, inputs: ReportInputs, out_html: Path, out_md: Pat
               f"<p class='note'>{e(paper_note)}</p>", _html_table(*paper2), _html_table(*paper3)]
     for s, models in photo_sections(photos).items():
         h += [f"<h2>Photos: {_wrap(s)}</h2>", f"<p>{e(models['about'])}</p>", f"<p class='note'>{e(PHOTOS_NOTE)}</p>"]
-        for a, (head, rows, what, warned) in models["tables"].items():
+        for a, (head, rows, what, warned, misses) in models["tables"].items():
             h += [f"<h3>{_wrap(a)} <span class='sub'>({e(what)})</span></h3>", _html_table(head, rows),
-                  *(f"<p class='note'>{e(w)}</p>" for w in warned)]
+                  *(f"<p class='note'>{e(w)}</p>" for w in (*warned, *misses))]
         h += [_img_tag(p, c) for p, c in photo_figs.get(s, [])]
     if inst_rows:
         h += ["<h2>Instance estimator</h2>", f"<p>{e(INSTANCE_NOTE)}</p>", _html_table(*inst_compact),
