@@ -85,3 +85,38 @@ def test_d4_keeps_every_pixel():
     out = augment_d4(x, _gen())
     for i in range(2):
         assert sorted(out[i].flatten().tolist()) == sorted(x[i].flatten().tolist())
+
+
+def test_noise_field_is_standardised_and_as_coarse_as_its_cell():
+    from psdfactory.learn.augment import noise_field
+
+    def corr_at(field, lag):  # correlation of the field with itself shifted by `lag` px
+        a, b = field[:, :-lag].flatten(), field[:, lag:].flatten()
+        return float(torch.corrcoef(torch.stack([a, b]))[0, 1])
+
+    fine, coarse = noise_field((96, 128), 1.5, _gen(2)), noise_field((96, 128), 8.0, _gen(2))
+    for f in (fine, coarse):
+        assert f.shape == (96, 128) and abs(float(f.mean())) < 1e-4 and abs(float(f.std()) - 1) < 1e-3
+    assert corr_at(coarse, 3) > 0.7 > 0.4 > corr_at(fine, 3)  # an 8-px cell is still alike 3 px on; 1.5 px not
+
+
+def test_surface_texture_marks_the_grains_only():
+    """Texture on the foreground of some images, the background untouched, reproducible, off at 0."""
+    from psdfactory.learn.augment import surface_texture
+
+    x = torch.full((8, 3, 48, 48), 40, dtype=torch.uint8)
+    x[:, :, 8:40, 8:40] = 150  # a grain on a dark table
+    fg = torch.zeros(8, 48, 48)
+    fg[:, 8:40, 8:40] = 1.0
+    out = surface_texture(x, fg, _gen(4), 1.0)
+    assert out.shape == x.shape and out.dtype == torch.uint8
+    assert torch.equal(out[:, :, :8], x[:, :, :8]) and torch.equal(out[:, :, :, 40:], x[:, :, :, 40:])  # background
+    changed = [not torch.equal(out[i], x[i]) for i in range(8)]
+    assert 0 < sum(changed) < 8  # on a share of the images (TEXTURE_SHARE), not all
+    for i in (i for i in range(8) if changed[i]):
+        grain = out[i, :, 8:40, 8:40].float()
+        assert grain.std() > 3 and abs(float(grain.mean()) - 150) < 25  # textured, about as bright
+    assert torch.equal(surface_texture(x, fg, _gen(4), 1.0), out)
+    assert torch.equal(surface_texture(x, fg, _gen(4), 0.0), x)
+    weak = surface_texture(x, fg, _gen(4), 0.3)  # a lower strength: the same images, less contrast
+    assert weak[:, :, 8:40, 8:40].float().std() < out[:, :, 8:40, 8:40].float().std()

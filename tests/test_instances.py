@@ -216,6 +216,25 @@ def test_min_visible_share_is_in_the_training_slice_only_when_set():
     assert network_recipe(set_on) != network_recipe(full)  # set, it is another network
 
 
+def test_surface_texture_is_in_the_training_slice_only_when_set():
+    """train.instances.surface_texture off (0) changes no slice; set, it is another network."""
+    import copy
+    from dataclasses import asdict
+
+    from psdfactory.config import load_config, network_recipe, train_params
+    from psdfactory.learn.instances.training import InstanceSettings
+
+    cfg = load_config("config/config.yaml")
+    off = train_params(cfg, "instances")["settings"]
+    assert "surface_texture" not in off and InstanceSettings.from_dict(off).surface_texture == 0.0
+    cfg = copy.deepcopy(cfg)
+    cfg["train"]["instances"]["surface_texture"] = 1.0
+    on = train_params(cfg, "instances")["settings"]
+    assert on["surface_texture"] == 1.0
+    full = {**train_params(cfg, "instances"), "settings": asdict(InstanceSettings.from_dict(off))}
+    assert network_recipe({**full, "settings": asdict(InstanceSettings.from_dict(on))}) != network_recipe(full)
+
+
 def test_loss_is_lower_for_the_true_maps_and_crops_keep_targets_aligned():
     mask = discs((32, 32), [(10, 10), (10, 22), (24, 16)], 6)
     t = target_stack(mask, np.array([np.nan, 12.0, 12.0, 30.0]))[None]
@@ -550,10 +569,11 @@ def test_training_on_the_grains_in_view_teaches_glimpses_as_background(tiny, tmp
     cfg["render"]["resolution"] = 48
     params = tiny_instance_params(cfg)
     params["settings"]["min_visible_share"] = 0.5
+    params["settings"]["surface_texture"] = 1.0  # and texture on the grains it learns (augment.surface_texture)
     train_from_params(params, root, tmp_path / "instances")
     meta = torch.load(tmp_path / "instances" / "model.pt", map_location="cpu", weights_only=True)["meta"]
     assert meta["readout"]["n_scenes"] == 2 and set(meta["postprocess"]) >= {"threshold", "h"}
-    assert meta["min_visible_share"] == 0.5
+    assert meta["min_visible_share"] == 0.5 and meta["surface_texture"] == 1.0
     # calibrated again, it keeps the grains it learnt: another share is another network
     from psdfactory.learn.instances.training import recalibrate
 

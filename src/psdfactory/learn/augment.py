@@ -9,6 +9,9 @@
 - ``photometric``: what a camera and its light do to an image but not to the particles — gain,
   contrast, gamma, white balance, colour saturation, a grey image, blur and sensor noise — so a
   model learns sizes, not one renderer's colours.
+- ``surface_texture``: speckle, mottling and veins laid on the grains (the foreground) of an image,
+  as natural stones carry them, so that a grain finder learns that an edge inside a grain's
+  texture is not a grain's edge.
 
 All take and return uint8 N×3×S×S batches (rescale also the N×3 labels, and a fourth channel of
 size codes, `size_cells`, with d4 and rescale), draw from a
@@ -16,6 +19,8 @@ size codes, `size_cells`, with d4 and rescale), draw from a
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch.nn import functional as F
@@ -144,3 +149,59 @@ def photometric(batch: torch.Tensor, gen: torch.Generator, strength: float = 1.0
     noise = u(0.0, 0.03 * strength).view(n, 1, 1, 1)
     x = x + noise * torch.randn(x.shape, generator=gen)
     return (x.clamp(0, 1) * 255.0).round().to(torch.uint8)
+
+
+# surface_texture's ranges at strength 1: the texture's cell (px, log-uniform), its contrast (sd of the relative
+# brightness change), the share of images it is laid on, and the veins' share of those, contrast and width (px)
+TEXTURE_CELL_PX = (1.5, 8.0)
+TEXTURE_CONTRAST = (0.05, 0.35)
+TEXTURE_SHARE = 0.5
+VEIN_SHARE = 0.5
+VEIN_CONTRAST = (0.2, 0.5)
+VEIN_WIDTH_PX = (0.6, 1.5)
+
+
+def noise_field(size: tuple[int, int], cell_px: float, gen: torch.Generator) -> torch.Tensor:
+    """H×W band-limited noise: white noise on a grid of `cell_px`-px cells, bilinearly interpolated,
+    at a random sub-cell offset; zero mean and unit sd over the field."""
+    h, w = size
+    gh, gw = math.ceil(h / cell_px) + 2, math.ceil(w / cell_px) + 2
+    coarse = torch.randn((1, 1, gh, gw), generator=gen)
+    big = F.interpolate(coarse, size=(round(gh * cell_px), round(gw * cell_px)), mode="bilinear", align_corners=False)
+    r0, c0 = (int(torch.randint(0, max(int(cell_px), 1), (1,), generator=gen)) for _ in range(2))
+    field = big[0, 0, r0 : r0 + h, c0 : c0 + w]
+    return (field - field.mean()) / field.std().clamp_min(1e-6)
+
+
+def surface_texture(batch: torch.Tensor, foreground: torch.Tensor, gen: torch.Generator,
+                    strength: float = 1.0) -> torch.Tensor:
+    """Texture on the grains of a share (TEXTURE_SHARE) of the images of a uint8 N×3×H×W batch:
+    each such image's pixels where `foreground` (N×H×W, > 0.5: a grain) are multiplied by
+    1 + a·n (n: `noise_field` of a drawn cell size, plus its octave at half the cell and half the
+    weight; a: the texture's drawn contrast × `strength`), and on half of them by thin veins, light
+    or dark (the zero line of a smoother field). The field runs on across touching grains, so it
+    marks no grain's edge; the labels do not change. `strength` 0 = none, 1 = the default ranges."""
+    if strength <= 0:
+        return batch
+    n, _, h, w = batch.shape
+
+    def u(lo: float, hi: float) -> float:
+        return lo + (hi - lo) * float(torch.rand((1,), generator=gen))
+
+    out = batch.clone()
+    for i in range(n):
+        if float(torch.rand((1,), generator=gen)) >= TEXTURE_SHARE:
+            continue
+        cell = math.exp(u(*(math.log(c) for c in TEXTURE_CELL_PX)))
+        field = noise_field((h, w), cell, gen) + 0.5 * noise_field((h, w), max(cell / 2, 1.0), gen)
+        gain = 1.0 + u(*TEXTURE_CONTRAST) * strength * field / 1.118  # 1.118: the sum's sd
+        if float(torch.rand((1,), generator=gen)) < VEIN_SHARE:
+            smooth = noise_field((h, w), cell * u(3.0, 6.0), gen)
+            slope = torch.stack(torch.gradient(smooth)).norm(dim=0).clamp_min(1e-3)
+            vein = torch.exp(-((smooth / slope / u(*VEIN_WIDTH_PX)) ** 2))  # ~1 on the zero line, width in px
+            gain = gain * (1.0 + (1 if float(torch.rand((1,), generator=gen)) < 0.5 else -1)
+                           * u(*VEIN_CONTRAST) * strength * vein)
+        grain = foreground[i] > 0.5
+        x = out[i].float() * torch.where(grain, gain.clamp_min(0.0), torch.ones_like(gain))
+        out[i] = x.round().clamp(0, 255).to(torch.uint8)
+    return out

@@ -20,7 +20,7 @@ from ... import PsdError, __version__
 from ...config import AUTO_SCALE_PROBE, SETTINGS_OFF, config_fields, network_recipe, training_recipe
 from ...manifest import PARTICLE_READ_COLUMNS
 from ...psd import NAMES, SOLID_DEFINITIONS, TARGETS, definition_targets
-from ..augment import TTA_VIEWS, photometric
+from ..augment import TTA_VIEWS, photometric, surface_texture
 from ..data import label_definition, normalise, particles_by_scene, training_rows
 from ..data import targets as label_targets
 from ..estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS
@@ -62,6 +62,7 @@ class InstanceSettings:
     tta: str  # none | flips | d4: the views of each image whose maps are averaged (TTA_VIEWS)
     auto_scale: bool  # the model's meta says predict reads photos at the grains' scale by default
     min_visible_share: float  # particles less of whose silhouette is in view are taught as background (grain_mask)
+    surface_texture: float  # strength of the texture laid on the training crops' grains (augment.surface_texture)
 
     @classmethod
     def from_dict(cls, d: dict) -> InstanceSettings:
@@ -267,6 +268,8 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         for b in range(0, len(order), params.batch_size):
             x, t = random_crops(x_train, t_train, order[b : b + params.batch_size], crop, gen, params.augment,
                                 tuple(params.scale_augment))
+            if settings.surface_texture > 0:  # before the camera: the stones' own texture
+                x = surface_texture(x, t[:, 0], gen, settings.surface_texture)
             if settings.photometric > 0:
                 x = photometric(x, gen, settings.photometric)
             x, t = normalise(x.to(device)), t.to(device)
@@ -313,6 +316,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         **calib,
         "auto_scale": settings.auto_scale,  # predict's default reading (--auto-scale / --no-auto-scale)
         "min_visible_share": settings.min_visible_share,  # the grains it learnt (train.instances)
+        "surface_texture": settings.surface_texture,  # the texture laid on them in training (train.instances)
         "boundary_pos_weight": pw,
         "params": asdict(params),
         "n_parameters": n_params,
