@@ -194,7 +194,7 @@ def surface_texture(batch: torch.Tensor, foreground: torch.Tensor, gen: torch.Ge
             continue
         cell = math.exp(u(*(math.log(c) for c in TEXTURE_CELL_PX)))
         field = noise_field((h, w), cell, gen) + 0.5 * noise_field((h, w), max(cell / 2, 1.0), gen)
-        gain = 1.0 + u(*TEXTURE_CONTRAST) * strength * field / 1.118  # 1.118: the sum's sd
+        gain = 1.0 + u(*TEXTURE_CONTRAST) * strength * field / math.hypot(1.0, 0.5)  # the sum's sd
         if float(torch.rand((1,), generator=gen)) < VEIN_SHARE:
             smooth = noise_field((h, w), cell * u(3.0, 6.0), gen)
             slope = torch.stack(torch.gradient(smooth)).norm(dim=0).clamp_min(1e-3)
