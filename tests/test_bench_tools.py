@@ -569,3 +569,23 @@ def test_relook_renders_the_same_scenes_in_another_look_and_leaves_the_sources_a
         with pytest.raises(SystemExit):
             relook.main(["--scenes", str(scenes), "--out", str(out), "--config", str(config)])
     assert {p: p.read_bytes() for p in scenes.glob("*/image.png")} == before
+
+
+def test_augment_cost_times_each_part_and_refuses_a_run_of_nothing(capsys):
+    """bench/augment_cost.py: a row per part (the two augmentations and the training step), each a positive time,
+    their shares summing to ~100 %; zero runs or batches are refused, not divided by."""
+    augment_cost = bench_module("augment_cost")
+    assert augment_cost.main(["--batch", "2", "--size", "32", "--repeats", "2", "--batches", "1",
+                              "--threads", "1"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    table = lines[lines.index(next(line for line in lines if line.startswith("part"))) + 1:][:3]
+    parts = [line[:18].strip() for line in table]
+    assert parts == ["photometric", "surface_texture", "training step"]
+    times = [float(line[18:].split()[0]) for line in table]
+    shares = [float(line.split()[-1].rstrip("%")) for line in table]
+    assert all(t > 0 for t in times)
+    assert abs(sum(shares) - 100) <= 2
+    assert "surface_texture adds" in lines[-1]
+    for bad in (["--repeats", "0"], ["--batches", "0"]):
+        with pytest.raises(SystemExit):
+            augment_cost.main(bad)
