@@ -221,7 +221,7 @@ def test_surface_texture_is_in_the_training_slice_only_when_set():
     import copy
     from dataclasses import asdict
 
-    from psdfactory.config import load_config, network_recipe, train_params, validate
+    from psdfactory.config import load_config, network_recipe, train_params
     from psdfactory.learn.instances.training import InstanceSettings
 
     cfg = load_config("config/config.yaml")
@@ -233,12 +233,13 @@ def test_surface_texture_is_in_the_training_slice_only_when_set():
     assert on["surface_texture"] == 1.0
     full = {**train_params(cfg, "instances"), "settings": asdict(InstanceSettings.from_dict(off))}
     assert network_recipe({**full, "settings": asdict(InstanceSettings.from_dict(on))}) != network_recipe(full)
-    import yaml
 
-    raw = yaml.safe_load(open("config/config.yaml", encoding="utf-8"))
-    raw["train"]["instances"]["surface_texture"] = 5.0  # a contrast of up to 1.75 sd: refused, naming the key
+    def too_strong(raw: dict) -> dict:  # a contrast of up to 1.75 sd: refused, naming the key
+        raw["train"]["instances"]["surface_texture"] = 5.0
+        return raw
+
     with pytest.raises(PsdError, match="surface_texture"):
-        validate(raw)
+        load_config("config/config.yaml", edit=too_strong)
 
 
 def test_loss_is_lower_for_the_true_maps_and_crops_keep_targets_aligned():
