@@ -1,9 +1,11 @@
 """The bench/ scripts' own logic: a dataset copy at the CNNs' input size (shrink_results.py), a
 recipe changed for the runs of seed_spread.py (--set) written as a config that needs no Snakemake
-(--write-config), and the outline comparison of mask_fit.py."""
+(--write-config), the outline comparison of mask_fit.py, and the rest of the scripts' pure parts
+(photo_scales.py's forced scale, test_time_bn.py's BatchNorm blend, ...)."""
 
 import importlib.util
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -589,3 +591,49 @@ def test_augment_cost_times_each_part_and_refuses_a_run_of_nothing(capsys):
     for bad in (["--repeats", "0"], ["--batches", "0"]):
         with pytest.raises(SystemExit):
             augment_cost.main(bad)
+
+
+def test_photo_scales_reads_a_photo_set_at_a_forced_factor_of_its_scale(tmp_path):
+    """bench/photo_scales.py: each photo's mm per px times the factor, in a copy of its CSV (other
+    columns and the set's own CSV untouched), or the set's one number times it; never the automatic scale."""
+    at = bench_module("photo_scales").photo_set_at
+    folder = tmp_path / "set"
+    folder.mkdir()
+    (folder / "labels.csv").write_text("image,mm_per_px,d50_mm\na.jpg,0.5,10\nb.jpg,2,30\n", encoding="utf-8")
+    params = {"name": "s", "folder": str(folder), "mm_per_px": {"csv": "labels.csv", "column": "mm_per_px"},
+              "reference": {"csv": "labels.csv"}, "masks": "{stem}_mask.png", "auto_scale": True}
+    work = tmp_path / "work"
+    work.mkdir()
+    p = at(params, 0.25, work)
+    assert p["auto_scale"] is False and params["auto_scale"] is True  # the set's params are left alone
+    rows = (Path(p["mm_per_px"]["csv"]).read_text(encoding="utf-8")).split()
+    assert rows[0] == "image,mm_per_px,d50_mm"
+    assert [float(r.split(",")[1]) for r in rows[1:]] == [0.125, 0.5] and rows[2].endswith(",30")
+    assert (folder / "labels.csv").read_text(encoding="utf-8").split()[1] == "a.jpg,0.5,10"
+    assert p["reference"]["csv"] == str(folder / "labels.csv") and p["folder"] == str(folder)
+    assert at(dict(params, mm_per_px=0.4), 2.0, work)["mm_per_px"] == pytest.approx(0.8)
+
+
+def test_test_time_bn_blends_the_trained_statistics_with_the_images_own():
+    """bench/test_time_bn.py: a = 0 leaves the network as trained, a = 1 gives each BatchNorm the
+    statistics of the batch it adapts on, a = 0.5 their mean; the network stays in eval mode."""
+    import torch
+
+    adapt = bench_module("test_time_bn").adapt
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Conv2d(3, 4, 1, bias=False), torch.nn.BatchNorm2d(4)).eval()
+    bn = net[1]
+    bn.running_mean.fill_(1.0)
+    bn.running_var.fill_(4.0)
+    x = torch.randn(2, 3, 8, 8) * 3 + 2
+    with torch.no_grad():
+        y = net[0](x)
+    mean, var = y.mean(dim=(0, 2, 3)), y.var(dim=(0, 2, 3), unbiased=True)
+    adapt(net, x, 0.0)
+    assert torch.equal(bn.running_mean, torch.ones(4)) and torch.equal(bn.running_var, torch.full((4,), 4.0))
+    adapt(net, x, 1.0)
+    assert torch.allclose(bn.running_mean, mean, atol=1e-5) and torch.allclose(bn.running_var, var, atol=1e-4)
+    assert not bn.training
+    adapt(net, x, 0.5)  # blended with the statistics it was trained with, not with the last adaptation
+    assert torch.allclose(bn.running_mean, (mean + 1) / 2, atol=1e-5)
+    assert torch.allclose(bn.running_var, (var + 4) / 2, atol=1e-4)
