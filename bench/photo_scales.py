@@ -15,14 +15,17 @@ perfect scale choice would give this model, the ceiling of any change to how the
         [--config config/config.yaml] [--photoset real] [--factors 0.18 0.25 0.36 0.5 0.7 1]
 
 The development photos are for measuring, never for choosing (issue 24): a factor picked here by
-its score would be tuned to these photos. Outputs go to --work (a temporary folder by default).
+its score would be tuned to these photos. Outputs go to --work (a temporary folder by default),
+under a name of the model file, and are read again there by a later run with the same model.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import json
+import math
 import re
 import subprocess
 import sys
@@ -30,6 +33,32 @@ import tempfile
 from pathlib import Path
 
 FACTORS = (0.18, 0.25, 0.36, 0.5, 0.7, 1.0)
+
+
+def check_run(model: Path, factors: list[float], work: Path | None, photo_folder: Path) -> list[str]:
+    """What is wrong with a run, before any work: a model file that is not there, a factor that is not a
+    finite number in (0, 4], a --work that is the model or lies in the photo set's folder (its copies of
+    the scale CSV and its readings would mix with the photos)."""
+    problems = []
+    if not model.is_file():
+        problems.append(f"--model {model}: no such file")
+    bad = [f for f in factors if not (math.isfinite(f) and 0 < f <= 4)]
+    if bad:
+        problems.append(f"--factors {' '.join(map(str, bad))}: give factors of the model's scale in (0, 4]")
+    if work is not None:
+        w, folder = work.resolve(), photo_folder.resolve()
+        if w == model.resolve():
+            problems.append(f"--work {work} is the model file")
+        elif w == folder or folder in w.parents:
+            problems.append(f"--work {work} lies in the photo set's folder {photo_folder}: give another folder")
+    return problems
+
+
+def model_key(model: Path) -> str:
+    """A short name for this model file as it is now (path, size, modification time): the readings
+    kept in --work are read again only for the same file."""
+    st = model.stat()
+    return hashlib.sha1(f"{model.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode()).hexdigest()[:10]
 
 
 def photo_set_at(params: dict, factor: float, work: Path) -> dict:
@@ -91,7 +120,9 @@ def main() -> None:
     from psdfactory import config as psd_config
 
     params = psd_config.photo_params(psd_config.load_config(a.config), a.photoset)
-    work = a.work or Path(tempfile.mkdtemp(prefix="photo_scales_"))
+    if problems := check_run(a.model, a.factors, a.work, Path(params["folder"])):
+        raise SystemExit("photo_scales.py: " + "; ".join(problems))
+    work = (a.work or Path(tempfile.mkdtemp(prefix="photo_scales_"))) / model_key(a.model)
     work.mkdir(parents=True, exist_ok=True)
     auto = photo_set_at(params, 1.0, work) | {"auto_scale": True}  # as the photo set reads them with this model
     m_auto, log_auto = evaluate(a.model, auto, work / "auto", a.precision)

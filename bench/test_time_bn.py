@@ -86,6 +86,13 @@ def main() -> None:
 
     photoset = psd_config.photo_params(psd_config.load_config(a.config), a.photoset)
     photoset["folder"] = str(Path(photoset["folder"]).resolve())
+    bad = [x for x in a.alphas if not 0 <= x <= 1]  # NaN is refused too
+    if bad or not a.model.is_file():
+        raise SystemExit(f"test_time_bn.py: give --alphas in [0, 1] (not {bad})" if bad else
+                         f"test_time_bn.py: --model {a.model}: no such file")
+    if a.work is not None and (a.work.resolve() == Path(photoset["folder"])
+                               or Path(photoset["folder"]) in a.work.resolve().parents):
+        raise SystemExit(f"test_time_bn.py: --work {a.work} lies in the photo set's folder: give another folder")
     work = a.work or Path(tempfile.mkdtemp(prefix="test_time_bn_"))
 
     def run(args: list[str]) -> None:

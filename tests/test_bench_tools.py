@@ -637,3 +637,23 @@ def test_test_time_bn_blends_the_trained_statistics_with_the_images_own():
     adapt(net, x, 0.5)  # blended with the statistics it was trained with, not with the last adaptation
     assert torch.allclose(bn.running_mean, (mean + 1) / 2, atol=1e-5)
     assert torch.allclose(bn.running_var, (var + 4) / 2, atol=1e-4)
+
+
+def test_photo_scales_refuses_a_run_it_cannot_do_before_any_work(tmp_path):
+    """bench/photo_scales.py: a missing model, a factor that is not finite or not in (0, 4], and a --work
+    in the photo set's folder are each named; readings are kept under a name of the model file as it is."""
+    mod = bench_module("photo_scales")
+    folder, model = tmp_path / "photos", tmp_path / "model.pt"
+    folder.mkdir()
+    assert len(mod.check_run(model, [0.5], None, folder)) == 1  # no model file
+    model.write_bytes(b"x")
+    assert mod.check_run(model, [0.5, 1.0], tmp_path / "work", folder) == []
+    (problem,) = mod.check_run(model, [0.0, float("nan"), 5.0, 0.3], None, folder)
+    assert "0.0 nan 5.0" in problem
+    assert "photo set's folder" in mod.check_run(model, [0.5], folder / "w", folder)[0]
+    assert "photo set's folder" in mod.check_run(model, [0.5], folder, folder)[0]
+    assert "is the model" in mod.check_run(model, [0.5], model, folder)[0]
+    key = mod.model_key(model)
+    assert key == mod.model_key(model)
+    model.write_bytes(b"another model")
+    assert mod.model_key(model) != key
