@@ -657,3 +657,30 @@ def test_photo_scales_refuses_a_run_it_cannot_do_before_any_work(tmp_path):
     assert key == mod.model_key(model)
     model.write_bytes(b"another model")
     assert mod.model_key(model) != key
+
+
+def test_finder_size_bias_recovers_a_rim_law_and_reads_a_scenes_truth(tmp_path):
+    """bench/finder_size_bias.py: ratio = a + b / d50_px fitted back from exact points; a scene's
+    particles in view, their size in px at the model's scale and its dark background read from its files."""
+    import pandas as pd
+    from PIL import Image
+
+    mod = bench_module("finder_size_bias")
+    d = np.array([10.0, 12.0, 16.0, 20.0, 30.0])
+    assert mod.fit_rim(d, 0.7 + 7.0 / d) == pytest.approx((0.7, 7.0))
+    scene = tmp_path / "s"
+    scene.mkdir()
+    particles = pd.DataFrame({"b_axis_mm": [2.0, 4.0, 6.0, 50.0], "feret_min_mm": [1.0, 3.0, 5.0, 40.0],
+                              "visible_px": [5, 9, 20, 0], "settled": [True, True, True, True]})
+    particles.to_parquet(scene / "particles.parquet")
+    (scene / "labels.json").write_text(json.dumps({"mm_per_px": 0.5}), encoding="utf-8")
+    mask = np.zeros((10, 10), np.uint16)
+    mask[:5] = 1
+    Image.fromarray(mask).save(scene / "mask.png")
+    img = np.full((10, 10), 255, np.uint8)
+    img[5:7] = 40  # 20 of the 50 background pixels dark
+    Image.fromarray(img).save(scene / "image.png")
+    s = mod.scene_stats(scene, 0.25)
+    assert s["in_view_feret_min_d50_mm"] == 3.0 and s["d50_px"] == pytest.approx(16.0)  # the buried one left out
+    assert s["covered"] == pytest.approx(0.5) and s["dark_background"] == pytest.approx(0.4)
+    assert s["in_view_per_cm2"] == pytest.approx(3 / 0.25)  # 10 x 10 px at 0.5 mm: 0.25 cm²
