@@ -67,9 +67,8 @@ def photo_set_at(params: dict, factor: float, work: Path) -> dict:
     p = json.loads(json.dumps(params))
     folder = Path(p["folder"]).resolve()
     p["folder"] = str(folder)
-    for key in ("reference",):
-        if isinstance(p.get(key), dict) and "csv" in p[key]:
-            p[key]["csv"] = str((folder / p[key]["csv"]).resolve())
+    if isinstance(p.get("reference"), dict) and "csv" in p["reference"]:
+        p["reference"]["csv"] = str((folder / p["reference"]["csv"]).resolve())
     scale = p["mm_per_px"]
     if isinstance(scale, dict):
         src = folder / scale["csv"]
@@ -100,11 +99,11 @@ def evaluate(model: Path, params: dict, out: Path, precision: str) -> tuple[dict
     return json.loads((out / "metrics.json").read_text(encoding="utf-8")), (out / "log").read_text(encoding="utf-8")
 
 
-def detection(p: dict) -> tuple[str, float, float | None]:
+def detection(p: dict) -> tuple[str, float]:
+    """A photo's P / R / F1 as drawn (and F1 against its outlines restored, where scored), and its F1."""
     d = p["detection"]
     r = (p.get("outlines_restored") or {}).get("detection")
-    text = f"{d['precision']:.2f} / {d['recall']:.2f} / {d['f1']:.3f}" + (f" ({r['f1']:.3f})" if r else "")
-    return text, d["f1"], (r["f1"] if r else None)
+    return f"{d['precision']:.2f} / {d['recall']:.2f} / {d['f1']:.3f}" + (f" ({r['f1']:.3f})" if r else ""), d["f1"]
 
 
 def main() -> None:
@@ -131,14 +130,14 @@ def main() -> None:
     for f in a.factors:
         m, _ = evaluate(a.model, photo_set_at(params, f, work), work / f"f{f:g}", a.precision)
         for name, p in m["photos"].items():
-            text, f1, _ = detection(p)
+            text, f1 = detection(p)
             rows.setdefault(name, []).append(f"| {f:g} | {text} |")
             if f1 > best.get(name, (None, -1.0))[1]:
                 best[name] = (f, f1)
     print(f"{a.model}: photo set {a.photoset!r}; precision / recall / F1 as drawn (restored)\n")
     for name, lines in rows.items():
         picked = re.findall(rf"{re.escape(name)}: its grains look .*? read at ([0-9.]+) x", log_auto)
-        text, f1, _ = detection(m_auto["photos"][name])
+        text, f1 = detection(m_auto["photos"][name])
         print(f"{name}\n\n| factor of the model's scale | P / R / F1 |\n|---|---|")
         print("\n".join(lines))
         print(f"| automatic scale ({picked[0] if picked else '1'}) | {text} |")

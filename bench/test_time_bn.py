@@ -55,8 +55,9 @@ def patch(alpha: float) -> None:
     from psdfactory.learn.data import normalise
     from psdfactory.learn.instances.estimator import InstanceEstimator, averaged_maps
 
-    choose = fastpath.choose
-    fastpath.choose = lambda est, path, runtime, device, cache=None: choose(est, path, "torch", device, cache)
+    if not hasattr(fastpath, "_choose_as_shipped"):  # once: later calls change the blend only
+        fastpath._choose_as_shipped = choose = fastpath.choose
+        fastpath.choose = lambda est, path, runtime, device, cache=None: choose(est, path, "torch", device, cache)
 
     def outputs(self, images_u8: torch.Tensor) -> np.ndarray:
         x = normalise(images_u8)
@@ -81,18 +82,17 @@ def main() -> None:
     ap.add_argument("--work", type=Path)
     a = ap.parse_args()
 
+    from photo_scales import check_run  # bench/ is on the path of a script run from it
     from psdfactory import config as psd_config
     from psdfactory.cli import main as cli
 
     photoset = psd_config.photo_params(psd_config.load_config(a.config), a.photoset)
     photoset["folder"] = str(Path(photoset["folder"]).resolve())
-    bad = [x for x in a.alphas if not 0 <= x <= 1]  # NaN is refused too
-    if bad or not a.model.is_file():
-        raise SystemExit(f"test_time_bn.py: give --alphas in [0, 1] (not {bad})" if bad else
-                         f"test_time_bn.py: --model {a.model}: no such file")
-    if a.work is not None and (a.work.resolve() == Path(photoset["folder"])
-                               or Path(photoset["folder"]) in a.work.resolve().parents):
-        raise SystemExit(f"test_time_bn.py: --work {a.work} lies in the photo set's folder: give another folder")
+    problems = check_run(a.model, [], a.work, Path(photoset["folder"]))  # the model, --work: as photo_scales.py
+    if bad := [x for x in a.alphas if not 0 <= x <= 1]:  # NaN is refused too
+        problems.append(f"--alphas {' '.join(map(str, bad))}: give blends in [0, 1]")
+    if problems:
+        raise SystemExit("test_time_bn.py: " + "; ".join(problems))
     work = a.work or Path(tempfile.mkdtemp(prefix="test_time_bn_"))
 
     def run(args: list[str]) -> None:
