@@ -58,12 +58,16 @@ def main() -> None:
                     help="scene folders and the model's readings of them; the last set is the one predicted")
     ap.add_argument("--model-mm-per-px", type=float, required=True, help="the scale the model reads at")
     a = ap.parse_args()
+    if len(a.sets) < 2:
+        raise SystemExit("finder_size_bias.py: give at least two sets: the last is predicted from the others")
     if not (np.isfinite(a.model_mm_per_px) and a.model_mm_per_px > 0):
         raise SystemExit("finder_size_bias.py: --model-mm-per-px must be a positive number")
     rows: dict[str, list[dict]] = {}
     for spec in a.sets:
         name, _, rest = spec.partition("=")
         folder, _, npz = rest.rpartition(":")
+        if not (name and Path(folder).is_dir() and Path(npz).is_file()):
+            raise SystemExit(f"finder_size_bias.py: {spec!r}: give NAME=SCENES_FOLDER:READINGS.npz, both existing")
         scenes = sorted(p for p in Path(folder).iterdir() if (p / "particles.parquet").is_file())
         found = np.load(npz)["feret-min|number"][:, 1]
         if len(found) != len(scenes):
