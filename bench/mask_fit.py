@@ -9,7 +9,9 @@ axis (the photo sets' size definition), the share of the found grains' pixels th
 calls background (gaps, shadows, table) or another grain, and the share of the image each mask
 leaves as background. Then the outline band the reference mask keeps between grains that meet
 (`learn.instances.scoring.outline_band_px`: 0 where its grains touch, as a rendered scene's) and
-the two ratios again against its grains grown back by half of it (`restore_outlines`). Last, what the
+the two ratios again against its grains grown back by half of it (`restore_outlines`), and the F1 as
+drawn that a finder outlining every grain where it meets its neighbour would score (those grains grown back,
+scored against the mask as drawn: what the reference's own band allows). Last, what the
 grains the match missed are (`learn.instances.scoring.error_kinds`, on the mask as drawn): the
 reference grains no found grain matches, cut into pieces, merged with a neighbour into one found
 grain, missed or misfit; the found grains that match none, a merge of several, on the reference's
@@ -54,9 +56,21 @@ def fit(found: np.ndarray, ref: np.ndarray, mm_per_px: float) -> dict:
 
     out = fit_as_drawn(found, ref, mm_per_px)
     band = outline_band_px(ref)
-    again = fit_as_drawn(found, restore_outlines(ref, band), mm_per_px, border_ids(ref)) if band else out
+    restored = restore_outlines(ref, band) if band else ref
+    again = fit_as_drawn(found, restored, mm_per_px, border_ids(ref)) if band else out
     return {**out, "band_px": band, "area_ratio_restored": again["area_ratio"],
-            "minor_ratio_restored": again["minor_ratio"]}
+            "minor_ratio_restored": again["minor_ratio"], "f1_ceiling": f1_ceiling(ref, restored)}
+
+
+def f1_ceiling(ref: np.ndarray, restored: np.ndarray) -> float:
+    """The F1 as drawn of a finder whose grains are the reference's grown back to meet (`restored`),
+    by the photo scorer's rule: 1 where the mask keeps no band; below 1 where the band is wide
+    against the grains (a grain d px across, drawn w px short of its neighbours, keeps IoU >= 0.5 only
+    while (d / (d + w))**2 >= 0.5, d >= 2.4 w)."""
+    from psdfactory.deploy.photos import IOU
+    from psdfactory.learn.instances.scoring import match_off_border
+
+    return float(match_off_border(restored, ref, IOU).f1)
 
 
 def fit_as_drawn(found: np.ndarray, ref: np.ndarray, mm_per_px: float, ref_on_border=None) -> dict:
@@ -125,7 +139,7 @@ def scenes(model: Path, results: Path, dataset: str, split: str, work: Path) -> 
 
 
 COLUMNS = ("matched", "area_ratio", "minor_ratio", "on_ref_background", "on_other_grain", "ref_background",
-           "found_background", "band_px", "area_ratio_restored", "minor_ratio_restored")
+           "found_background", "band_px", "area_ratio_restored", "minor_ratio_restored", "f1_ceiling")
 
 
 def table(title: str, rows: list[tuple[str, dict]], each: bool) -> None:

@@ -210,6 +210,24 @@ def test_mask_fit_measures_how_much_fatter_the_found_grains_are():
     assert r["band_px"] == pytest.approx(4.0) and r["area_ratio"] == pytest.approx(256 / 144)
     assert r["area_ratio_restored"] == pytest.approx(256 / 252)  # grown back by 2.5 px, but its corners' √8 px
     assert r["minor_ratio"] == pytest.approx(16 / 12, abs=0.01) and 1 < r["minor_ratio_restored"] < 1.05
+    assert r["f1_ceiling"] == 1.0  # 12 px grains grown back by 2 px a side keep IoU (12/16)² > 0.5
+
+
+def test_mask_fit_ceiling_is_what_the_outline_band_allows():
+    """bench/mask_fit.py's f1_ceiling: a reference whose 4 px band is wide against its 3 px grains
+    (IoU of one grown back (3/7)² < 0.5) lets no finder that draws grains meeting match them; its
+    12 px grains stay matched. 4 matched, 27 small references missed, 24 grown grains found in excess
+    (the 3 on the image's left edge are left out by the border rule): F1 = 8 / 59."""
+    fit = bench_module("mask_fit").fit
+    ref = np.zeros((60, 64), np.int64)
+    for j in range(4):
+        ref[2:14, 16 * j + 2 : 16 * j + 14] = j + 1
+    for k, (i, j) in enumerate(np.ndindex(3, 9), start=5):
+        ref[18 + 7 * i : 21 + 7 * i, 2 + 7 * j : 5 + 7 * j] = k
+    r = fit(ref.copy(), ref, 0.5)
+    assert r["band_px"] == pytest.approx(4.0)
+    assert r["f1_ceiling"] == pytest.approx(8 / 59)
+    assert r["matched"] == 31  # the found grains are the reference itself: every one matched as drawn
 
 
 def test_seed_spread_gives_the_photo_figures_as_drawn_and_with_outlines_restored(tmp_path):
