@@ -36,9 +36,10 @@ each with the elapsed time and an ETA, go to stdout; each command's own log goes
 train.log / eval/evaluate.log, Snakemake's to <out>/snakemake.log.
 
 An arm that differs from a finished spread only in what the instance estimator does with its
-trained network (train.instances' tta, sieve_method, readout: config.CALIBRATION_SETTINGS) need not
-train it again: with --recalibrate-from <that spread's seed_spread folder> each seed's network is
-taken from there and only calibrated again (post-processing and read-out: minutes), so the
+trained network (train.instances' tta, sieve_method, readout, calibration_datasets:
+config.CALIBRATION_SETTINGS) need not train it again: with --recalibrate-from <that spread's
+seed_spread folder> each seed's network is taken from there and only calibrated again
+(post-processing and read-out: minutes), so the
 arm and its baseline share their networks seed for seed (--results: a folder of its own holding the
 same datasets, e.g. hard links, `cp -al results_gravel/gravel arm/`).
 
@@ -426,8 +427,8 @@ def main() -> None:
                     "a YAML value: --set train.epochs=50 --set train.device=cuda); repeatable")
     ap.add_argument("--recalibrate-from", metavar="DIR",
                     help="a seed_spread folder of runs of the same network (e.g. results/seed_spread): a run that "
-                    "differs from its run of the same seed only in train.instances' tta, sieve_method or readout "
-                    "takes that network and calibrates it again (minutes) instead of training it")
+                    "differs from its run of the same seed only in train.instances' tta, sieve_method, readout or "
+                    "calibration_datasets takes that network and calibrates it again (minutes) instead of training it")
     ap.add_argument("--write-config", metavar="FILE",
                     help="write the validated config (schema defaults filled in, --set applied) as JSON and stop: "
                     "--config FILE then runs it where Snakemake is not installed (a GPU node with the training "

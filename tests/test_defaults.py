@@ -65,6 +65,8 @@ def python_type(node: dict, nested: type | None = None):
         (t,) = {type(v) for v in node["enum"]}
         return t
     kind = node["type"]
+    if isinstance(kind, list):  # e.g. ["array", "null"]: a field that holds None where the setting is absent
+        (kind,) = [k for k in kind if k != "null"]
     if kind == "object":
         return nested if "properties" in node else dict
     if kind == "array":

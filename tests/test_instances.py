@@ -242,6 +242,45 @@ def test_surface_texture_is_in_the_training_slice_only_when_set():
         load_config("config/config.yaml", edit=too_strong)
 
 
+def test_calibration_datasets_choose_the_scenes_the_calibration_is_fitted_on():
+    """train.instances.calibration_datasets: absent, no slice and no network changes; set, the calibration after
+    training takes the scenes of those datasets only (rows and images alike), the network is the same one, and a
+    dataset it does not train on is refused naming the key."""
+    import copy
+    from dataclasses import asdict
+
+    from psdfactory.config import load_config, network_recipe, train_params
+    from psdfactory.learn.instances.training import calibration_scenes
+
+    cfg = load_config("config/config.yaml")
+    off = train_params(cfg, "instances")["settings"]
+    assert "calibration_datasets" not in off and InstanceSettings.from_dict(off).calibration_datasets is None
+    on_cfg = copy.deepcopy(cfg)
+    on_cfg["train"]["instances"]["calibration_datasets"] = ["train"]
+    on = train_params(on_cfg, "instances")["settings"]
+    assert InstanceSettings.from_dict(on).calibration_datasets == ("train",)
+    full = {**train_params(cfg, "instances"), "settings": asdict(InstanceSettings.from_dict(off))}
+    assert network_recipe({**full, "settings": asdict(InstanceSettings.from_dict(on))}) == network_recipe(full)
+
+    rows = [{"dataset": d, "scene_id": f"{d}-{i}"} for i, d in enumerate(["a", "b", "a", "b", "b"])]
+    x = torch.arange(5, dtype=torch.uint8).reshape(5, 1, 1, 1).expand(5, 3, 2, 2)
+    settings = InstanceSettings.from_dict({**off, "calibration_datasets": ["b"]})
+    tr, va, xt, xv = calibration_scenes(settings, rows, rows[:2], x, x[:2])
+    assert [r["scene_id"] for r in tr] == ["b-1", "b-3", "b-4"] and [r["scene_id"] for r in va] == ["b-1"]
+    assert xt[:, 0, 0, 0].tolist() == [1, 3, 4] and xv[:, 0, 0, 0].tolist() == [1]
+    everything = calibration_scenes(InstanceSettings.from_dict(off), rows, rows[:2], x, x[:2])
+    assert everything[0] is rows and everything[2] is x
+    with pytest.raises(PsdError, match="calibration_datasets b: 3 train and 0 val"):
+        calibration_scenes(settings, rows, rows[:1], x, x[:1])
+
+    def elsewhere(raw: dict) -> dict:
+        raw["train"]["instances"]["calibration_datasets"] = ["ood_test"]
+        return raw
+
+    with pytest.raises(PsdError, match="train.instances.calibration_datasets: 'ood_test' is not one of the datasets"):
+        load_config("config/config.yaml", edit=elsewhere)
+
+
 def test_loss_is_lower_for_the_true_maps_and_crops_keep_targets_aligned():
     mask = discs((32, 32), [(10, 10), (10, 22), (24, 16)], 6)
     t = target_stack(mask, np.array([np.nan, 12.0, 12.0, 30.0]))[None]
@@ -609,6 +648,7 @@ def test_a_trained_network_calibrated_again_under_other_views_keeps_its_weights(
                                 InstanceEstimator, "cpu")
     assert meta["tta"] == "d4" and meta["recalibrated_from"] == str(model_path) and val_mae >= 0
     assert meta["auto_scale"] is True  # predict's default reading is the new settings', not the source's
+    assert meta["calibration_datasets"] == ["tiny"]  # all it trained on, where the settings name none
     assert meta["readout"]["n_scenes"] == 2 and set(meta["postprocess"]) >= {"threshold", "h"}
     before = torch.load(model_path, map_location="cpu", weights_only=True)["state_dict"]
     after = torch.load(tmp_path / "model.pt", map_location="cpu", weights_only=True)["state_dict"]

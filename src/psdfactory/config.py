@@ -511,6 +511,12 @@ def semantic_problems(config: dict) -> list[str]:
     problems += training_datasets_problems(config, "train.datasets", t["datasets"])
     for arch, own in estimator_datasets(config).items():  # train.instances.datasets, listed architecture or not
         problems += training_datasets_problems(config, f"train.{arch}.datasets", own)
+    for arch, section in t.items():  # train.instances.calibration_datasets: some of what it trains on
+        if isinstance(section, dict) and section.get("calibration_datasets") is not None:
+            own = section.get("datasets") or t["datasets"]
+            problems += [f"train.{arch}.calibration_datasets: {d!r} is not one of the datasets it trains on "
+                         f"({', '.join(own)}: train.{arch}.datasets, else train.datasets)"
+                         for d in section["calibration_datasets"] if d not in own]
     if len(set(t["architectures"])) != len(t["architectures"]):
         problems.append("train.architectures: lists an architecture twice")
     for arch in t["architectures"]:  # what each training job will be given, checked now, not after the scenes
@@ -731,11 +737,11 @@ def main_training_dataset(config: dict) -> str:
 META_ONLY_SETTINGS = ("auto_scale",)
 # train.<arch> settings added after models were trained, and their values that change nothing: in a training's
 # slice only when set otherwise (`train_params`)
-SETTINGS_OFF = {"auto_scale": False, "min_visible_share": 0.0, "surface_texture": 0.0}
+SETTINGS_OFF = {"auto_scale": False, "min_visible_share": 0.0, "surface_texture": 0.0, "calibration_datasets": None}
 # train.<arch> settings that change what a trained network's maps are made into (the instance estimator's calibration
-# after training: its views, its sieve-size method, its read-out), not the network: runs that differ only in them
-# share their network (bench/seed_spread.py --recalibrate-from)
-CALIBRATION_SETTINGS = ("tta", "sieve_method", "readout")
+# after training: its views, its sieve-size method, its read-out, the scenes it is fitted on), not the network: runs
+# that differ only in them share their network (bench/seed_spread.py --recalibrate-from)
+CALIBRATION_SETTINGS = ("tta", "sieve_method", "readout", "calibration_datasets")
 
 
 def settings_set(settings: dict) -> dict:

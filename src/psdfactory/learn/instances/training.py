@@ -10,7 +10,7 @@ import itertools
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -63,11 +63,14 @@ class InstanceSettings:
     auto_scale: bool  # the model's meta says predict reads photos at the grains' scale by default
     min_visible_share: float  # particles less of whose silhouette is in view are taught as background (grain_mask)
     surface_texture: float  # strength of the texture laid on the training crops' grains (augment.surface_texture)
+    calibration_datasets: tuple[str, ...] | None  # those of its datasets the calibration is fitted on (None: all)
 
     @classmethod
     def from_dict(cls, d: dict) -> InstanceSettings:
         # SETTINGS_OFF are in a slice only when on (config.train_params): absent means off
         s = cls(**config_fields(cls, {**SETTINGS_OFF, **d}, "train.instances"))
+        if s.calibration_datasets is not None:
+            s = replace(s, calibration_datasets=tuple(s.calibration_datasets))
         if s.sieve_method not in SIEVE_METHODS:
             raise PsdError(f"train.instances.sieve_method must be one of {', '.join(SIEVE_METHODS)}")
         if s.readout not in READOUTS:
@@ -153,6 +156,21 @@ def grain_sizes(est, x_val: torch.Tensor, val_maps: np.ndarray) -> dict:
     sizes = (np.median(seen), np.max(seen), np.max(probed))
     return {**{k: round(float(v), 3) for k, v in zip(GRAIN_SIZE_KEYS, sizes, strict=True)},
             GRAIN_PROBE_KEY: AUTO_SCALE_PROBE}
+
+
+def calibration_scenes(settings: InstanceSettings, train_rows: list[dict], val_rows: list[dict], x_train: torch.Tensor,
+                       x_val: torch.Tensor) -> tuple[list[dict], list[dict], torch.Tensor, torch.Tensor]:
+    """Of the training and validation scenes (rows, images), those the calibration is fitted on: the scenes of
+    ``settings.calibration_datasets``, or all of them."""
+    if settings.calibration_datasets is None:
+        return train_rows, val_rows, x_train, x_val
+    keep = set(settings.calibration_datasets)
+    ti = [i for i, r in enumerate(train_rows) if r["dataset"] in keep]
+    vi = [i for i, r in enumerate(val_rows) if r["dataset"] in keep]
+    if not ti or not vi:
+        raise PsdError(f"train.instances.calibration_datasets {', '.join(sorted(keep))}: {len(ti)} train and "
+                       f"{len(vi)} val scenes among the ones it trains on; the calibration needs both")
+    return [train_rows[i] for i in ti], [val_rows[i] for i in vi], x_train[ti], x_val[vi]
 
 
 def calibrate(model, device, settings: InstanceSettings, weights_used: str, results_root: Path, train_rows: list[dict],
@@ -293,8 +311,8 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
               {"arch": ARCH, "maps": list(MAPS)}, also_fp=legacy_fingerprints(params, settings, ids))
     model.eval()
 
-    calib = calibrate(model, device, settings, weights_used, results_root, train_rows, val_rows, x_train, x_val,
-                      estimator)
+    calib = calibrate(model, device, settings, weights_used, results_root,
+                      *calibration_scenes(settings, train_rows, val_rows, x_train, x_val), estimator)
     history = res.history
     history[-1]["val_mae_mm"] = calib.pop("val_mae_mm")
     write_history(history, out_dir / "history.csv")
@@ -314,6 +332,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         "weights": weights_used,
         "maps": list(MAPS),
         **calib,
+        "calibration_datasets": list(settings.calibration_datasets or params.datasets),  # what calib was fitted on
         "auto_scale": settings.auto_scale,  # predict's default reading (--auto-scale / --no-auto-scale)
         "min_visible_share": settings.min_visible_share,  # the grains it learnt (train.instances)
         "surface_texture": settings.surface_texture,  # the texture laid on them in training (train.instances)
@@ -360,13 +379,14 @@ def recalibrate(model_path: Path, settings: InstanceSettings, results_root: Path
     train_rows, val_rows, _ = training_rows(results_root, meta["params"]["datasets"])
     x_train, _ = load_scenes(results_root, train_rows)
     x_val, _ = load_scenes(results_root, val_rows)
-    calib = calibrate(model, dev, settings, meta.get("weights", "unknown"), results_root, train_rows, val_rows,
-                      x_train, x_val, estimator)
+    calib = calibrate(model, dev, settings, meta.get("weights", "unknown"), results_root,
+                      *calibration_scenes(settings, train_rows, val_rows, x_train, x_val), estimator)
     val_mae = calib.pop("val_mae_mm")
     if "calibration" in meta:
         logger.warning(f"{model_path} carries a correction fitted by psdfactory calibrate: it is left out of "
                        f"{out_path} (calibrate the new model again)")
     new = {**{k: v for k, v in meta.items() if k != "calibration"}, **calib, "auto_scale": settings.auto_scale,
+           "calibration_datasets": list(settings.calibration_datasets or meta["params"]["datasets"]),
            "recalibrated_from": str(model_path)}
     problems = meta_problems(new)
     if problems:
