@@ -94,7 +94,8 @@ def main() -> None:
         if clash:
             raise SystemExit(f"--write-models {a.write_models} would overwrite {clash[0]}: give another folder")
     datasets = a.datasets or psd_config.evaluation_datasets(cfg)
-    train_rows, val_rows, _ = training_rows(root, meta["params"]["datasets"])
+    # the scenes training fits the read-out on: those of its calibration_datasets where it names them
+    train_rows, val_rows, _ = training_rows(root, meta.get("calibration_datasets") or meta["params"]["datasets"])
     fit_y = {"train": targets(train_rows).numpy()}
     fit_y["train+val"] = np.concatenate([fit_y["train"], targets(val_rows).numpy()])
     ceilings = {}

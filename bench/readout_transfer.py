@@ -26,13 +26,13 @@ variants, each measured against it:
   trained on dense and sparse ones).
 
 Each model's statistics are read as `psdfactory predict` reads an image (`predict.read_at_scale`),
-the read-outs refitted on the model's training scenes (train + val, as training fits them; with
---fit-on, those of the datasets it names), and scored per target on the test split of the training
-dataset, the other evaluated datasets, and scenes in the paper's look (`bench/paper_look.py`'s
---work folder, 0.3 mm/px), in the sieve and b-axis definitions: R², Spearman ρ, mean and mean
-absolute relative error, and the mean absolute relative error after a leave-one-out calibration on
-the set's other images (as `psdfactory calibrate` fits one; NaN where fewer than its minimum of
-references read a finite size):
+the read-outs refitted on the model's training scenes (train + val, as training fits them: those of
+its calibration_datasets where its meta names them; with --fit-on, those of the datasets it names),
+and scored per target on the test split of the training dataset, the other evaluated datasets, and
+scenes in the paper's look (`bench/paper_look.py`'s --work folder, 0.3 mm/px), in the sieve and
+b-axis definitions: R², Spearman ρ, mean and mean absolute relative error, and the mean absolute
+relative error after a leave-one-out calibration on the set's other images (as `psdfactory
+calibrate` fits one; NaN where fewer than its minimum of references read a finite size):
 
     .venv/bin/python bench/readout_transfer.py --model results/models/instances/model.pt \
         --datasets train train_cycles ood_test --paper-look /tmp/psd-paper-look [--wider CONFIG] [--fit-on train]
@@ -190,13 +190,14 @@ def main() -> None:
     fit_on = list(dict.fromkeys(a.fit_on or []))
     own = f"train ({', '.join(fit_on)})" if fit_on else "train"  # how the rows name the fit on the model's scenes
     labels_of = {"train": own, "train + wider": f"{own} + wider"}
-    trained_on = {}
+    trained_on, calibrated_on = {}, {}
     for model in a.model:  # every --fit-on checked before any image is read
         try:
             meta = load_checkpoint(Path(model)).get("meta") or {}
         except PsdError as e:
             raise SystemExit(str(e)) from None
         trained_on[model] = list((meta.get("params") or {}).get("datasets") or [])
+        calibrated_on[model] = list(meta.get("calibration_datasets") or trained_on[model])  # as training fits it
         if unknown := [d for d in fit_on if d not in trained_on[model]]:
             raise SystemExit(f"--fit-on {' '.join(unknown)}: not among the datasets {model} was trained on "
                              f"({', '.join(trained_on[model])})")
@@ -220,7 +221,7 @@ def main() -> None:
     out = []
     for model in a.model:
         est = load_estimator(Path(model))
-        tr, va, _ = training_rows(root, fit_on or trained_on[model])
+        tr, va, _ = training_rows(root, fit_on or calibrated_on[model])
         fit_rows = {"train": tr + va}
 
         def stats_of(base: Path, rows: list[dict], est=est) -> np.ndarray:

@@ -272,6 +272,17 @@ def test_calibration_datasets_choose_the_scenes_the_calibration_is_fitted_on():
     assert everything[0] is rows and everything[2] is x
     with pytest.raises(PsdError, match="calibration_datasets b: 3 train and 0 val"):
         calibration_scenes(settings, rows, rows[:1], x, x[:1])
+    assert calibration_scenes(settings, rows, rows[:2])[2:] == (None, None)  # rows alone: checked before training
+    with pytest.raises(PsdError, match="must be a list of dataset names"):
+        InstanceSettings.from_dict({**off, "calibration_datasets": "train"})
+    # a checkpoint of before 2026-11-28 resumes with it set as without it (the legacy fingerprints ignore it)
+    from psdfactory.learn.instances.training import legacy_fingerprints
+    from psdfactory.learn.train import TrainParams
+
+    params = TrainParams.from_dict({k: v for k, v in full.items() if k != "settings"})
+    ids = [("s-0", "train", 1.0, 2.0, 3.0)]
+    assert legacy_fingerprints(params, InstanceSettings.from_dict(on), ids) == \
+        legacy_fingerprints(params, InstanceSettings.from_dict(off), ids)
 
     def elsewhere(raw: dict) -> dict:
         raw["train"]["instances"]["calibration_datasets"] = ["ood_test"]
@@ -279,6 +290,13 @@ def test_calibration_datasets_choose_the_scenes_the_calibration_is_fitted_on():
 
     with pytest.raises(PsdError, match="train.instances.calibration_datasets: 'ood_test' is not one of the datasets"):
         load_config("config/config.yaml", edit=elsewhere)
+
+    def twice(raw: dict) -> dict:
+        raw["train"]["instances"]["calibration_datasets"] = ["train", "train"]
+        return raw
+
+    with pytest.raises(PsdError, match="train.instances.calibration_datasets: lists a dataset twice"):
+        load_config("config/config.yaml", edit=twice)
 
 
 def test_loss_is_lower_for_the_true_maps_and_crops_keep_targets_aligned():
@@ -649,6 +667,10 @@ def test_a_trained_network_calibrated_again_under_other_views_keeps_its_weights(
     assert meta["tta"] == "d4" and meta["recalibrated_from"] == str(model_path) and val_mae >= 0
     assert meta["auto_scale"] is True  # predict's default reading is the new settings', not the source's
     assert meta["calibration_datasets"] == ["tiny"]  # all it trained on, where the settings name none
+    assert meta["mm_per_px"] == summary["mm_per_px"]  # the scale of the scenes it is calibrated on: the same ones
+    with pytest.raises(PsdError, match="calibration_datasets other: .* was not trained on it"):
+        recalibrate(model_path, InstanceSettings.from_dict({**settings, "calibration_datasets": ["other"]}), root,
+                    tmp_path / "other.pt", InstanceEstimator, "cpu")
     assert meta["readout"]["n_scenes"] == 2 and set(meta["postprocess"]) >= {"threshold", "h"}
     before = torch.load(model_path, map_location="cpu", weights_only=True)["state_dict"]
     after = torch.load(tmp_path / "model.pt", map_location="cpu", weights_only=True)["state_dict"]

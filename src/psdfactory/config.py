@@ -513,10 +513,11 @@ def semantic_problems(config: dict) -> list[str]:
         problems += training_datasets_problems(config, f"train.{arch}.datasets", own)
     for arch, section in t.items():  # train.instances.calibration_datasets: some of what it trains on
         if isinstance(section, dict) and section.get("calibration_datasets") is not None:
-            own = section.get("datasets") or t["datasets"]
-            problems += [f"train.{arch}.calibration_datasets: {d!r} is not one of the datasets it trains on "
-                         f"({', '.join(own)}: train.{arch}.datasets, else train.datasets)"
-                         for d in section["calibration_datasets"] if d not in own]
+            own, key = section.get("datasets") or t["datasets"], f"train.{arch}.calibration_datasets"
+            outside = [f"{key}: {d!r} is not one of the datasets it trains on ({', '.join(own)}: "
+                       f"train.{arch}.datasets, else train.datasets)" for d in section[key.rsplit('.', 1)[1]]
+                       if d not in own]
+            problems += outside or training_datasets_problems(config, key, section["calibration_datasets"])
     if len(set(t["architectures"])) != len(t["architectures"]):
         problems.append("train.architectures: lists an architecture twice")
     for arch in t["architectures"]:  # what each training job will be given, checked now, not after the scenes

@@ -70,7 +70,10 @@ class InstanceSettings:
         # SETTINGS_OFF are in a slice only when on (config.train_params): absent means off
         s = cls(**config_fields(cls, {**SETTINGS_OFF, **d}, "train.instances"))
         if s.calibration_datasets is not None:
-            s = replace(s, calibration_datasets=tuple(s.calibration_datasets))
+            names = s.calibration_datasets
+            if isinstance(names, str) or not all(isinstance(n, str) for n in names) or not names:
+                raise PsdError(f"train.instances.calibration_datasets must be a list of dataset names, not {names!r}")
+            s = replace(s, calibration_datasets=tuple(names))
         if s.sieve_method not in SIEVE_METHODS:
             raise PsdError(f"train.instances.sieve_method must be one of {', '.join(SIEVE_METHODS)}")
         if s.readout not in READOUTS:
@@ -158,19 +161,32 @@ def grain_sizes(est, x_val: torch.Tensor, val_maps: np.ndarray) -> dict:
             GRAIN_PROBE_KEY: AUTO_SCALE_PROBE}
 
 
-def calibration_scenes(settings: InstanceSettings, train_rows: list[dict], val_rows: list[dict], x_train: torch.Tensor,
-                       x_val: torch.Tensor) -> tuple[list[dict], list[dict], torch.Tensor, torch.Tensor]:
-    """Of the training and validation scenes (rows, images), those the calibration is fitted on: the scenes of
-    ``settings.calibration_datasets``, or all of them."""
+def calibration_scenes(settings: InstanceSettings, train_rows: list[dict], val_rows: list[dict],
+                       x_train: torch.Tensor | None = None, x_val: torch.Tensor | None = None
+                       ) -> tuple[list[dict], list[dict], torch.Tensor | None, torch.Tensor | None]:
+    """Of the training and validation scenes (rows, and their images where given), those the calibration is
+    fitted on: the scenes of ``settings.calibration_datasets``, or all of them (the same objects). Refuses a
+    choice that leaves no training or no validation scene, before anything is trained on it."""
     if settings.calibration_datasets is None:
         return train_rows, val_rows, x_train, x_val
     keep = set(settings.calibration_datasets)
     ti = [i for i, r in enumerate(train_rows) if r["dataset"] in keep]
     vi = [i for i, r in enumerate(val_rows) if r["dataset"] in keep]
     if not ti or not vi:
+        trained = sorted({r["dataset"] for r in train_rows + val_rows})
         raise PsdError(f"train.instances.calibration_datasets {', '.join(sorted(keep))}: {len(ti)} train and "
-                       f"{len(vi)} val scenes among the ones it trains on; the calibration needs both")
-    return [train_rows[i] for i in ti], [val_rows[i] for i in vi], x_train[ti], x_val[vi]
+                       f"{len(vi)} val scenes among those of the datasets it trains on ({', '.join(trained)}); "
+                       "the calibration needs both")
+    return ([train_rows[i] for i in ti], [val_rows[i] for i in vi],
+            None if x_train is None else x_train[ti], None if x_val is None else x_val[vi])
+
+
+def scale_meta(rows: list[dict]) -> dict:
+    """The scale a model reads at, from the training scenes its calibration was fitted on: predict brings a photo
+    to it, and the grain sizes and read-out were measured there."""
+    res_px = int(np.median([r["resolution"] for r in rows]))
+    return {"input_size": res_px,  # inference runs on whole images at the training images' scale
+            "image_resolution": res_px, "mm_per_px": float(np.median([r["mm_per_px"] for r in rows]))}
 
 
 def calibrate(model, device, settings: InstanceSettings, weights_used: str, results_root: Path, train_rows: list[dict],
@@ -239,7 +255,7 @@ def legacy_fingerprints(params, settings: InstanceSettings, ids: list) -> tuple[
     (config.CALIBRATION_SETTINGS, under any of their values): a checkpoint written then still resumes."""
     out = []
     for tta, sieve, readout in itertools.product(TTA_VIEWS, SIEVE_METHODS, LEGACY_READOUTS):
-        old = {**asdict(settings), "tta": tta, "sieve_method": sieve, "readout": readout}
+        old = {**asdict(settings), "tta": tta, "sieve_method": sieve, "readout": readout, "calibration_datasets": None}
         out.append(fingerprint(training_recipe({**asdict(params), "settings": old}), ids))
     return tuple(out)
 
@@ -254,6 +270,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     np.random.seed(params.seed % 2**32)
     device = pick_device(params.device)
     train_rows, val_rows, rows = training_rows(results_root, params.datasets)
+    calibration_scenes(settings, train_rows, val_rows)  # a calibration without scenes is refused before training
     t_load = time.perf_counter()
     particles = particles_by_scene(results_root, params.datasets, PARTICLE_READ_COLUMNS + ("ecd_mm",)
                                    if settings.min_visible_share > 0 else None)  # the size map's targets
@@ -311,28 +328,25 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
               {"arch": ARCH, "maps": list(MAPS)}, also_fp=legacy_fingerprints(params, settings, ids))
     model.eval()
 
-    calib = calibrate(model, device, settings, weights_used, results_root,
-                      *calibration_scenes(settings, train_rows, val_rows, x_train, x_val), estimator)
+    c_train, c_val, cx_train, cx_val = calibration_scenes(settings, train_rows, val_rows, x_train, x_val)
+    calib = calibrate(model, device, settings, weights_used, results_root, c_train, c_val, cx_train, cx_val, estimator)
     history = res.history
     history[-1]["val_mae_mm"] = calib.pop("val_mae_mm")
     write_history(history, out_dir / "history.csv")
 
-    res_px = int(np.median([r["resolution"] for r in train_rows]))
     summary = {
         "arch": ARCH,
         "trunk": TRUNK,
         "decoder": list(DECODER),
         "full_res_channels": FULL_RES,
-        "input_size": res_px,  # inference runs on whole images at the training images' scale
+        **scale_meta(c_train),
         "crop_size": crop,
-        "image_resolution": res_px,
-        "mm_per_px": float(np.median([r["mm_per_px"] for r in train_rows])),
         "targets": list(TARGETS),
         **label_definition(train_rows + val_rows),
         "weights": weights_used,
         "maps": list(MAPS),
         **calib,
-        "calibration_datasets": list(settings.calibration_datasets or params.datasets),  # what calib was fitted on
+        "calibration_datasets": list(settings.calibration_datasets or params.datasets),  # what calib is fitted on
         "auto_scale": settings.auto_scale,  # predict's default reading (--auto-scale / --no-auto-scale)
         "min_visible_share": settings.min_visible_share,  # the grains it learnt (train.instances)
         "surface_texture": settings.surface_texture,  # the texture laid on them in training (train.instances)
@@ -356,13 +370,13 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
 
 def recalibrate(model_path: Path, settings: InstanceSettings, results_root: Path, out_path: Path,
                 estimator: type, device: str = "auto") -> tuple[dict, float]:
-    """A trained instance model calibrated again under other calibration settings (``tta``,
-    ``sieve_method``, ``readout``: what the trained network's maps are made into, not what it
-    learnt; and predict's default reading, ``auto_scale``), on the training and validation scenes it
-    was trained on; writes the model to `out_path` with its network unchanged and returns its meta
-    and the calibrated validation error (mm). A correction `psdfactory calibrate` had fitted to the
-    old readings is dropped (it corrected readings this model no longer makes). For measuring those
-    settings on trained networks without training them again (bench/seed_spread.py
+    """A trained instance model calibrated again under other calibration settings (``tta``, ``sieve_method``,
+    ``readout``, ``calibration_datasets``: what the trained network's maps are made into and on which scenes,
+    not what it learnt; and predict's default reading, ``auto_scale``), on the training and validation scenes it
+    was trained on (those of ``calibration_datasets`` where set); writes the model to `out_path` with its
+    network unchanged and returns its meta and the calibrated validation error (mm). A correction `psdfactory
+    calibrate` had fitted to the old readings is dropped (it corrected readings this model no longer makes). For
+    measuring those settings on trained networks without training them again (bench/seed_spread.py
     --recalibrate-from)."""
     from ..runtime import load_model, meta_problems
 
@@ -376,16 +390,23 @@ def recalibrate(model_path: Path, settings: InstanceSettings, results_root: Path
         raise PsdError(f"{model_path} was trained on the particles with min_visible_share {trained:g}, not "
                        f"{settings.min_visible_share:g}: that changes what the network learns, so train it again")
     model.eval()
+    outside = sorted(set(settings.calibration_datasets or ()) - set(meta["params"]["datasets"]))
+    if outside:
+        trained_on = ", ".join(meta["params"]["datasets"])
+        raise PsdError(f"calibration_datasets {', '.join(outside)}: {model_path} was not trained on "
+                       f"{'it' if len(outside) == 1 else 'them'} (its datasets: {trained_on})")
     train_rows, val_rows, _ = training_rows(results_root, meta["params"]["datasets"])
+    train_rows, val_rows, *_ = calibration_scenes(settings, train_rows, val_rows)
     x_train, _ = load_scenes(results_root, train_rows)
     x_val, _ = load_scenes(results_root, val_rows)
-    calib = calibrate(model, dev, settings, meta.get("weights", "unknown"), results_root,
-                      *calibration_scenes(settings, train_rows, val_rows, x_train, x_val), estimator)
+    calib = calibrate(model, dev, settings, meta.get("weights", "unknown"), results_root, train_rows, val_rows,
+                      x_train, x_val, estimator)
     val_mae = calib.pop("val_mae_mm")
     if "calibration" in meta:
         logger.warning(f"{model_path} carries a correction fitted by psdfactory calibrate: it is left out of "
                        f"{out_path} (calibrate the new model again)")
-    new = {**{k: v for k, v in meta.items() if k != "calibration"}, **calib, "auto_scale": settings.auto_scale,
+    new = {**{k: v for k, v in meta.items() if k != "calibration"}, **calib, **scale_meta(train_rows),
+           "auto_scale": settings.auto_scale,
            "calibration_datasets": list(settings.calibration_datasets or meta["params"]["datasets"]),
            "recalibrated_from": str(model_path)}
     problems = meta_problems(new)
