@@ -512,12 +512,12 @@ def semantic_problems(config: dict) -> list[str]:
     for arch, own in estimator_datasets(config).items():  # train.instances.datasets, listed architecture or not
         problems += training_datasets_problems(config, f"train.{arch}.datasets", own)
     for arch, section in t.items():  # train.instances.calibration_datasets: some of what it trains on
-        if isinstance(section, dict) and section.get("calibration_datasets") is not None:
+        names = section.get("calibration_datasets") if isinstance(section, dict) else None
+        if names is not None:
             own, key = section.get("datasets") or t["datasets"], f"train.{arch}.calibration_datasets"
             outside = [f"{key}: {d!r} is not one of the datasets it trains on ({', '.join(own)}: "
-                       f"train.{arch}.datasets, else train.datasets)" for d in section[key.rsplit('.', 1)[1]]
-                       if d not in own]
-            problems += outside or training_datasets_problems(config, key, section["calibration_datasets"])
+                       f"train.{arch}.datasets, else train.datasets)" for d in names if d not in own]
+            problems += outside or training_datasets_problems(config, key, names)
     if len(set(t["architectures"])) != len(t["architectures"]):
         problems.append("train.architectures: lists an architecture twice")
     for arch in t["architectures"]:  # what each training job will be given, checked now, not after the scenes
