@@ -31,6 +31,26 @@ def test_every_shipped_config_is_valid(name):
     assert load_config(REPO / "config" / name)["datasets"]
 
 
+def test_the_general_recipe_is_the_defaults_scenes_plus_the_gravel_look():
+    """config/general.yaml says its crushed rock is the default's scenes (the same draws) and its beds
+    config/gravel.yaml's look: both copies are checked here, so that an edit of one shows."""
+    general, default = load_config(REPO / "config" / "general.yaml"), load_config(REPO / "config" / "config.yaml")
+    gravel = load_config(REPO / "config" / "gravel.yaml")
+    assert general["seed"] == default["seed"] and general["render"] == default["render"]
+    assert general["labels"] == default["labels"] and general["photos"] == default["photos"]
+    for name, ds in default["datasets"].items():
+        assert general["datasets"][name] == ds, name
+    look = {k: v for k, v in gravel["render"].items() if k not in ("backend", "resolution", "cycles")}
+    beds = general["datasets"]["beds"]["render"]
+    assert {k: beds[k] for k in look} == look
+    assert beds["backend"] == "tiny" and beds["resolution"] == default["render"]["resolution"]
+    assert {k: general["datasets"]["beds"][k] for k in ("shape", "shape_params", "table_size", "count", "size")} == {
+        k: gravel["datasets"]["gravel"][k] for k in ("shape", "shape_params", "table_size", "count", "size")}
+    p = psd_config.train_params(general, "instances")
+    assert p["epochs"] == 100 and set(p["settings"]["calibration_datasets"]) < set(p["datasets"])
+    assert "beds" in p["datasets"] and "beds" not in p["settings"]["calibration_datasets"]
+
+
 @pytest.mark.parametrize("name", ["paper.yaml", "paper-cpu.yaml"])
 def test_the_paper_configs_draw_the_papers_label_statistics(name):
     """The labels (b-axis: the drawn sizes' number-weighted percentiles) of the paper configs'
