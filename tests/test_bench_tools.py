@@ -702,3 +702,36 @@ def test_finder_size_bias_recovers_a_rim_law_and_reads_a_scenes_truth(tmp_path):
     assert s["in_view_feret_min_d50_mm"] == 3.0 and s["d50_px"] == pytest.approx(16.0)  # the buried one left out
     assert s["covered"] == pytest.approx(0.5) and s["dark_background"] == pytest.approx(0.4)
     assert s["in_view_per_cm2"] == pytest.approx(3 / 0.25)  # 10 x 10 px at 0.5 mm: 0.25 cm²
+
+
+def test_photo_robustness_makes_a_photo_set_again_as_another_camera_would(tmp_path):
+    """bench/photo_robustness.py's variants: a smaller photo gets its mask shrunk alike and a scale multiplied to
+    match (the same mm on the ground), a grey one equal channels, a JPEG one a .jpg in labels.csv; the masks' ids and
+    the references stay."""
+    from PIL import Image
+
+    pr = bench_module("photo_robustness")
+    src = tmp_path / "set"
+    src.mkdir()
+    rng = np.random.default_rng(0)
+    Image.fromarray(rng.integers(0, 255, (60, 90, 3), dtype=np.uint8)).save(src / "a.jpg")
+    mask = np.zeros((60, 90), np.uint16)
+    mask[10:40, 10:50], mask[20:50, 60:85] = 1, 2
+    Image.fromarray(mask).save(src / "a_mask.png")
+    (src / "labels.csv").write_text("image,mm_per_px,d10_mm,d50_mm,d90_mm\na.jpg,0.5,1,2,3\n")
+
+    pr.make_variant(src, tmp_path / "half", "half")
+    rows = (tmp_path / "half" / "labels.csv").read_text().splitlines()
+    assert rows[1].split(",")[:2] == ["a.png", "1"] and rows[1].endswith(",1,2,3")  # 90 px -> 45: twice the mm
+    half = np.asarray(Image.open(tmp_path / "half" / "a.png"))
+    half_mask = np.asarray(Image.open(tmp_path / "half" / "a_mask.png"))
+    assert half.shape == (30, 45, 3) and half_mask.shape == (30, 45) and set(np.unique(half_mask)) == {0, 1, 2}
+
+    pr.make_variant(src, tmp_path / "grey", "grey")
+    grey = np.asarray(Image.open(tmp_path / "grey" / "a.png")).astype(int)
+    assert grey.shape == (60, 90, 3) and (grey[..., 0] == grey[..., 1]).all() and (grey[..., 1] == grey[..., 2]).all()
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "grey" / "a_mask.png")), mask)
+
+    pr.make_variant(src, tmp_path / "jpeg", "jpeg25")
+    assert (tmp_path / "jpeg" / "labels.csv").read_text().splitlines()[1].startswith("a.jpg,0.5,")
+    assert Image.open(tmp_path / "jpeg" / "a.jpg").format == "JPEG"
