@@ -120,3 +120,35 @@ def test_surface_texture_marks_the_grains_only():
     assert torch.equal(surface_texture(x, fg, _gen(4), 0.0), x)
     weak = surface_texture(x, fg, _gen(4), 0.3)  # a lower strength: the same images, less contrast
     assert weak[:, :, 8:40, 8:40].float().std() < out[:, :, 8:40, 8:40].float().std()
+
+
+def test_grain_colour_gives_each_grain_a_colour_of_its_own():
+    """Two touching grains on a table: where an image is recoloured each grain is one colour, the two
+    differ, the table and the pixels' share of grain do not change; reproducible, off at 0."""
+    from psdfactory.learn.augment import GRAIN_BRIGHTNESS, GRAIN_CAST, grain_colour, grain_regions
+    from psdfactory.learn.instances.targets import instance_targets
+
+    mask = np.zeros((48, 48), dtype=np.int64)
+    mask[8:40, 8:24], mask[8:40, 24:40] = 1, 2  # two grains meeting along column 24
+    fg, boundary, _ = instance_targets(mask)
+    regions = grain_regions(torch.from_numpy(fg).float(), torch.from_numpy(boundary).float())
+    assert set(np.unique(regions)) == {0, 1, 2}  # two grains and the table, the boundary given to its grain
+    assert (regions[mask == 0] == 0).all() and len(np.unique(regions[mask == 1])) == 1
+    assert len(np.unique(regions[mask == 2])) == 1 and regions[20, 10] != regions[20, 30]
+
+    x = torch.full((8, 3, 48, 48), 40, dtype=torch.uint8)
+    x[:, :, 8:40, 8:40] = 128
+    fgs = torch.from_numpy(fg).float().expand(8, 48, 48)
+    bds = torch.from_numpy(boundary).float().expand(8, 48, 48)
+    out = grain_colour(x, fgs, bds, _gen(5), 1.0)
+    assert out.shape == x.shape and out.dtype == torch.uint8
+    assert torch.equal(out[:, :, :8], x[:, :, :8]) and torch.equal(out[:, :, :, 40:], x[:, :, :, 40:])  # table
+    changed = [not torch.equal(out[i], x[i]) for i in range(8)]
+    assert 0 < sum(changed) < 8  # a share of the images (GRAIN_COLOUR_SHARE)
+    for i in (i for i in range(8) if changed[i]):
+        left, right = out[i, :, 8:40, 8:24].float(), out[i, :, 8:40, 24:40].float()
+        assert left.std(dim=(1, 2)).max() == 0 and right.std(dim=(1, 2)).max() == 0  # one colour a grain
+        assert not torch.equal(left[:, 0, 0], right[:, 0, 0])  # a colour of its own
+        assert (left[:, 0, 0] / 128).log().abs().max() <= GRAIN_CAST + GRAIN_BRIGHTNESS + 0.01  # within the ranges
+    assert torch.equal(grain_colour(x, fgs, bds, _gen(5), 1.0), out)
+    assert torch.equal(grain_colour(x, fgs, bds, _gen(5), 0.0), x)

@@ -216,8 +216,9 @@ def test_min_visible_share_is_in_the_training_slice_only_when_set():
     assert network_recipe(set_on) != network_recipe(full)  # set, it is another network
 
 
-def test_surface_texture_is_in_the_training_slice_only_when_set():
-    """train.instances.surface_texture off (0) changes no slice; set, it is another network."""
+@pytest.mark.parametrize("key", ["surface_texture", "grain_colour"])
+def test_a_grain_augmentation_is_in_the_training_slice_only_when_set(key):
+    """train.instances.surface_texture / grain_colour off (0) changes no slice; set, it is another network."""
     import copy
     from dataclasses import asdict
 
@@ -226,19 +227,19 @@ def test_surface_texture_is_in_the_training_slice_only_when_set():
 
     cfg = load_config("config/config.yaml")
     off = train_params(cfg, "instances")["settings"]
-    assert "surface_texture" not in off and InstanceSettings.from_dict(off).surface_texture == 0.0
+    assert key not in off and getattr(InstanceSettings.from_dict(off), key) == 0.0
     cfg = copy.deepcopy(cfg)
-    cfg["train"]["instances"]["surface_texture"] = 1.0
+    cfg["train"]["instances"][key] = 1.0
     on = train_params(cfg, "instances")["settings"]
-    assert on["surface_texture"] == 1.0
+    assert on[key] == 1.0
     full = {**train_params(cfg, "instances"), "settings": asdict(InstanceSettings.from_dict(off))}
     assert network_recipe({**full, "settings": asdict(InstanceSettings.from_dict(on))}) != network_recipe(full)
 
-    def too_strong(raw: dict) -> dict:  # a contrast of up to 1.75 sd: refused, naming the key
-        raw["train"]["instances"]["surface_texture"] = 5.0
+    def too_strong(raw: dict) -> dict:  # beyond the schema's maximum: refused, naming the key
+        raw["train"]["instances"][key] = 5.0
         return raw
 
-    with pytest.raises(PsdError, match="surface_texture"):
+    with pytest.raises(PsdError, match=key):
         load_config("config/config.yaml", edit=too_strong)
 
 

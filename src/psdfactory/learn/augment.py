@@ -12,6 +12,9 @@
 - ``surface_texture``: speckle, mottling and veins laid on the grains (the foreground) of an image,
   as natural stones carry them, so that a grain finder learns that an edge inside a grain's
   texture is not a grain's edge.
+- ``grain_colour``: each grain of an image given a colour and brightness of its own, as the pebbles
+  of a river bed or a beach differ stone by stone, so that a grain finder learns what a grain is
+  from its shape and edges, not from the few rock colours it was rendered in.
 
 All take and return uint8 N×3×S×S batches (rescale also the N×3 labels, and a fourth channel of
 size codes, `size_cells`, with d4 and rescale), draw from a
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch.nn import functional as F
 
@@ -204,4 +208,51 @@ def surface_texture(batch: torch.Tensor, foreground: torch.Tensor, gen: torch.Ge
         grain = foreground[i] > 0.5
         x = out[i].float() * torch.where(grain, gain.clamp_min(0.0), torch.ones_like(gain))
         out[i] = x.round().clamp(0, 255).to(torch.uint8)
+    return out
+
+
+# grain_colour's ranges at strength 1: the share of images it recolours, and the log-range of each grain's
+# factor per channel (its colour cast) and overall (its brightness)
+GRAIN_COLOUR_SHARE = 0.5
+GRAIN_CAST = 0.2
+GRAIN_BRIGHTNESS = 0.4
+
+
+def grain_regions(foreground: torch.Tensor, boundary: torch.Tensor) -> np.ndarray:
+    """The grains of one crop (H×W maps, > 0.5 on) as integer labels: the foreground without its
+    boundary pixels, split into connected parts, and each foreground pixel of the boundary given the
+    label of the nearest part (0 = the table)."""
+    from scipy import ndimage
+
+    fg = foreground.numpy() > 0.5
+    cores, n = ndimage.label(fg & ~(boundary.numpy() > 0.5))
+    if n == 0:
+        return cores
+    _, (rows, cols) = ndimage.distance_transform_edt(cores == 0, return_indices=True)
+    return np.where(fg, cores[rows, cols], 0)
+
+
+def grain_colour(batch: torch.Tensor, foreground: torch.Tensor, boundary: torch.Tensor, gen: torch.Generator,
+                 strength: float = 1.0) -> torch.Tensor:
+    """Each grain of a share (GRAIN_COLOUR_SHARE) of the images of a uint8 N×3×H×W batch multiplied
+    by a colour of its own: a factor exp(U(-c, c)) per channel (c = GRAIN_CAST × `strength`) times a
+    brightness exp(U(-b, b)) (b = GRAIN_BRIGHTNESS × `strength`). The grains are those of the crop's
+    own targets (`foreground`, `boundary`: N×H×W, `grain_regions`), so touching grains part where
+    they meet and a grain's colour stops at its edge; the table and the labels do not change.
+    `strength` 0 = none, 1 = the default ranges."""
+    if strength <= 0:
+        return batch
+    out = batch.clone()
+    cast, bright = GRAIN_CAST * strength, GRAIN_BRIGHTNESS * strength
+    for i in range(len(batch)):
+        if float(torch.rand((1,), generator=gen)) >= GRAIN_COLOUR_SHARE:
+            continue
+        regions = torch.from_numpy(grain_regions(foreground[i], boundary[i])).long()
+        n = int(regions.max())
+        if n == 0:
+            continue
+        factors = torch.exp((torch.rand((n, 3), generator=gen) * 2 - 1) * cast
+                            + (torch.rand((n, 1), generator=gen) * 2 - 1) * bright)
+        gain = torch.cat([torch.ones(1, 3), factors])[regions].permute(2, 0, 1)  # 3×H×W, 1 on the table
+        out[i] = (out[i].float() * gain).round().clamp(0, 255).to(torch.uint8)
     return out

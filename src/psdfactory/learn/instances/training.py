@@ -20,7 +20,7 @@ from ... import PsdError, __version__
 from ...config import AUTO_SCALE_PROBE, SETTINGS_OFF, config_fields, network_recipe, training_recipe
 from ...manifest import PARTICLE_READ_COLUMNS
 from ...psd import NAMES, SOLID_DEFINITIONS, TARGETS, definition_targets
-from ..augment import TTA_VIEWS, photometric, surface_texture
+from ..augment import TTA_VIEWS, grain_colour, photometric, surface_texture
 from ..data import label_definition, normalise, particles_by_scene, training_rows
 from ..data import targets as label_targets
 from ..estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS
@@ -63,6 +63,7 @@ class InstanceSettings:
     auto_scale: bool  # the model's meta says predict reads photos at the grains' scale by default
     min_visible_share: float  # particles less of whose silhouette is in view are taught as background (grain_mask)
     surface_texture: float  # strength of the texture laid on the training crops' grains (augment.surface_texture)
+    grain_colour: float  # strength of the colour of its own given to each training grain (augment.grain_colour)
     calibration_datasets: tuple[str, ...] | None  # those of its datasets the calibration is fitted on (None: all)
 
     @classmethod
@@ -305,6 +306,8 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
                                 tuple(params.scale_augment))
             if settings.surface_texture > 0:  # before the camera: the stones' own texture
                 x = surface_texture(x, t[:, 0], gen, settings.surface_texture)
+            if settings.grain_colour > 0:  # before the camera too: the stones' own colours
+                x = grain_colour(x, t[:, 0], t[:, 1], gen, settings.grain_colour)
             if settings.photometric > 0:
                 x = photometric(x, gen, settings.photometric)
             x, t = normalise(x.to(device)), t.to(device)
@@ -350,6 +353,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
         "auto_scale": settings.auto_scale,  # predict's default reading (--auto-scale / --no-auto-scale)
         "min_visible_share": settings.min_visible_share,  # the grains it learnt (train.instances)
         "surface_texture": settings.surface_texture,  # the texture laid on them in training (train.instances)
+        "grain_colour": settings.grain_colour,  # the colours given to them in training (train.instances)
         "boundary_pos_weight": pw,
         "params": asdict(params),
         "n_parameters": n_params,
