@@ -16,13 +16,15 @@ the matched grains' size error and the d50 error, beside the photos as taken.
 
 Measuring, not choosing: a variant that loses much says what kind of photo the model is fragile
 to; nothing here is fitted to the photos. Outputs (the variants' folders, each model's metrics)
-go to --work (a temporary folder by default).
+go to --work (a temporary folder by default); a later run with the same --work and the same photo set
+reuses the variants made there (labels.csv, written last, marks a finished one).
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import json
 import logging
 import sys
@@ -159,6 +161,37 @@ def _f(v, pct: bool = False) -> str:
     return f"{100 * v:+.0f} %" if pct else f"{v:.2f}"
 
 
+def output_problems(photos: Path, models: list[Path], work: Path | None, json_out: Path | None) -> list[str]:
+    """What is wrong with where a run would write, before any work: --work inside the photo set (its variants would
+    land among the photos) or a model file; --json a model, a file of the photo set, or inside --work."""
+    def inside(p: Path, folder: Path) -> bool:
+        return p.resolve() == folder.resolve() or folder.resolve() in p.resolve().parents
+
+    found = []
+    if work is not None:
+        if inside(work, photos):
+            found.append(f"--work {work} lies in the photo set {photos}: choose a folder outside it")
+        if any(work.resolve() == m.resolve() for m in models):
+            found.append(f"--work {work} is a --model file")
+    if json_out is not None:
+        if any(json_out.resolve() == m.resolve() for m in models):
+            found.append(f"--json {json_out} is a --model file")
+        if inside(json_out, photos):
+            found.append(f"--json {json_out} lies in the photo set {photos}: choose a file outside it")
+        if work is not None and inside(json_out, work):
+            found.append(f"--json {json_out} lies in --work {work}, which the run writes: choose a file outside it")
+        if json_out.is_dir():
+            found.append(f"--json {json_out} is a folder, not a file")
+    return found
+
+
+def variant_folder(work: Path, photos: Path, name: str) -> Path:
+    """Where a variant of the photo set `photos` is kept in `work`: under a name of that set (its folder's name and a
+    hash of its path), so that a later run with the same --work and another set makes its variants anew."""
+    key = hashlib.sha1(str(photos.resolve()).encode()).hexdigest()[:8]
+    return work / "photos" / f"{photos.resolve().name}-{key}" / name
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", type=Path, nargs="+", required=True)
@@ -176,10 +209,12 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"--model {m}: no such file")
     if not (args.photos / "labels.csv").is_file():
         ap.error(f"--photos {args.photos}: no labels.csv there (a photo set folder, as data/photos/real)")
+    for problem in output_problems(args.photos, args.model, args.work, args.json):
+        ap.error(problem)
     work = args.work or Path(tempfile.mkdtemp(prefix="photo-robustness-"))
     results: dict = {}
     for v in args.variants:
-        folder = work / "photos" / v
+        folder = variant_folder(work, args.photos, v)
         if not (folder / "labels.csv").is_file():
             make_variant(args.photos, folder, v)
         for i, model in enumerate(args.model):

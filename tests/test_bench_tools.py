@@ -735,3 +735,21 @@ def test_photo_robustness_makes_a_photo_set_again_as_another_camera_would(tmp_pa
     pr.make_variant(src, tmp_path / "jpeg", "jpeg25")
     assert (tmp_path / "jpeg" / "labels.csv").read_text().splitlines()[1].startswith("a.jpg,0.5,")
     assert Image.open(tmp_path / "jpeg" / "a.jpg").format == "JPEG"
+
+
+def test_photo_robustness_refuses_outputs_among_its_inputs(tmp_path):
+    """--work inside the photo set or a model, --json a model, a photo-set file, inside --work or a folder: each
+    refused before any work, in a line naming the flag; a work folder per photo set."""
+    pr = bench_module("photo_robustness")
+    photos, model, work = tmp_path / "set", tmp_path / "model.pt", tmp_path / "work"
+    photos.mkdir()
+    model.write_bytes(b"x")
+    assert pr.output_problems(photos, [model], work, tmp_path / "out.json") == []
+    for w, j, flag in ((photos / "w", None, "--work"), (model, None, "--work"), (None, model, "--json"),
+                       (None, photos / "labels.csv", "--json"), (work, work / "all.json", "--json"),
+                       (None, tmp_path, "--json")):
+        found = pr.output_problems(photos, [model], w, j)
+        assert len(found) == 1 and found[0].startswith(flag), (w, j, found)
+    other = tmp_path / "other" / "set"
+    assert pr.variant_folder(work, photos, "grey") != pr.variant_folder(work, other, "grey")
+    assert pr.variant_folder(work, photos, "grey").name == "grey"
