@@ -164,12 +164,33 @@ def test_estimator_averages_the_model_views_and_checks_the_setting():
     assert any("tta" in p for p in readout_problems({"tta": "d8"}))
 
 
+@pytest.mark.parametrize("stages", [2, 3])
 @pytest.mark.parametrize("shape", [(1, 3, 33, 47), (2, 3, 64, 64), (1, 3, 9, 70)])
-def test_network_maps_have_the_input_size(shape):
-    net = InstanceNet().eval()
+def test_network_maps_have_the_input_size(shape, stages):
+    net = InstanceNet(stages=stages).eval()
     with torch.no_grad():
         out = net(torch.randn(*shape))
     assert out.shape == (shape[0], len(MAPS), *shape[2:]) and torch.isfinite(out).all()
+
+
+def test_a_deeper_trunk_is_described_by_its_meta_and_refused_when_it_is_not_one():
+    """trunk_stages 3: layer3 kept, a decoder stage more, the model file's meta rebuilds the same network (its
+    weights load), and a meta naming another trunk depth or a decoder of the wrong length is refused."""
+    from psdfactory.learn.instances.estimator import readout_problems
+    from psdfactory.learn.instances.net import decoder_for, net_from_meta
+
+    deep, flat = InstanceNet(stages=3), InstanceNet()
+    assert deep.layer3 is not None and flat.layer3 is None and len(deep.up) == len(flat.up) + 1
+    assert sum(p.numel() for p in deep.parameters()) > 3 * sum(p.numel() for p in flat.parameters())
+    meta = {"maps": list(MAPS), "trunk_stages": 3, "decoder": list(decoder_for(3))}
+    net_from_meta(meta).load_state_dict(deep.state_dict())  # strict: every weight, no more, no fewer
+    with pytest.raises(RuntimeError):
+        net_from_meta({"maps": list(MAPS)}).load_state_dict(deep.state_dict())
+    assert not [p for p in readout_problems(meta) if "trunk" in p or "decoder" in p]
+    assert any("trunk_stages" in p for p in readout_problems({**meta, "trunk_stages": 4}))
+    assert any("decoder" in p for p in readout_problems({**meta, "decoder": list(decoder_for(2))}))
+    with pytest.raises(PsdError, match="stages"):
+        InstanceNet(stages=5)
 
 
 def test_glimpsed_particles_are_taught_as_background():
@@ -216,9 +237,12 @@ def test_min_visible_share_is_in_the_training_slice_only_when_set():
     assert network_recipe(set_on) != network_recipe(full)  # set, it is another network
 
 
-@pytest.mark.parametrize("key", ["surface_texture", "grain_colour"])
-def test_a_grain_augmentation_is_in_the_training_slice_only_when_set(key):
-    """train.instances.surface_texture / grain_colour off (0) changes no slice; set, it is another network."""
+@pytest.mark.parametrize(("key", "off_value", "on_value", "refused"),
+                         [("surface_texture", 0.0, 1.0, 5.0), ("grain_colour", 0.0, 1.0, 5.0),
+                          ("trunk_stages", 2, 3, 4)])
+def test_a_network_setting_is_in_the_training_slice_only_when_set(key, off_value, on_value, refused):
+    """train.instances.surface_texture / grain_colour off (0) and trunk_stages at 2 change no slice; set, it is
+    another network; a value the schema does not allow is refused naming the key."""
     import copy
     from dataclasses import asdict
 
@@ -227,16 +251,16 @@ def test_a_grain_augmentation_is_in_the_training_slice_only_when_set(key):
 
     cfg = load_config("config/config.yaml")
     off = train_params(cfg, "instances")["settings"]
-    assert key not in off and getattr(InstanceSettings.from_dict(off), key) == 0.0
+    assert key not in off and getattr(InstanceSettings.from_dict(off), key) == off_value
     cfg = copy.deepcopy(cfg)
-    cfg["train"]["instances"][key] = 1.0
+    cfg["train"]["instances"][key] = on_value
     on = train_params(cfg, "instances")["settings"]
-    assert on[key] == 1.0
+    assert on[key] == on_value
     full = {**train_params(cfg, "instances"), "settings": asdict(InstanceSettings.from_dict(off))}
     assert network_recipe({**full, "settings": asdict(InstanceSettings.from_dict(on))}) != network_recipe(full)
 
-    def too_strong(raw: dict) -> dict:  # beyond the schema's maximum: refused, naming the key
-        raw["train"]["instances"][key] = 5.0
+    def too_strong(raw: dict) -> dict:
+        raw["train"]["instances"][key] = refused
         return raw
 
     with pytest.raises(PsdError, match=key):

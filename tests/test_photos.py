@@ -133,33 +133,33 @@ def test_tile_spans_cover_the_axis_with_cores_and_keep_tiles_on_the_stride_grid(
     assert len(tile_spans(4000, 1024, 96)) == 1 + math.ceil((4000 - 1024) / (1024 - 2 * 96))
 
 
-def test_tiled_maps_of_the_network_equal_one_pass():
+@pytest.mark.parametrize("stages", [2, 3])
+def test_tiled_maps_of_the_network_equal_one_pass(stages):
     """The instance network's maps, tile by tile with the estimator's margin, are those of one
-    pass (its receptive field is within the margin); with a margin too small they are not."""
+    pass (its receptive field, for either trunk, is within the margin); with a margin too small they are not."""
     from psdfactory.learn.instances.net import RECEPTIVE_RADIUS_PX, net_from_meta
     from psdfactory.learn.runtime import torch_runner
 
     torch.manual_seed(0)
-    net = net_from_meta({"maps": ["foreground", "boundary", "distance", "size"]}).eval()
+    meta = dict(META, maps=["foreground", "boundary", "distance", "size"], trunk_stages=stages)
+    net = net_from_meta(meta).eval()
     for m in net.modules():  # an untrained network with batch-norm statistics that are not the identity
         if isinstance(m, torch.nn.BatchNorm2d):
             m.running_mean.uniform_(-0.2, 0.2)
             m.running_var.uniform_(0.5, 2.0)
-    est = InstanceEstimator(dict(META, maps=["foreground", "boundary", "distance", "size"]),
-                            torch_runner(InstanceEstimator(META, None, net).inference_module()))
-    assert est.tile_margin_px >= RECEPTIVE_RADIUS_PX and est.tile_margin_px % 32 == 0
-    x = as_input(np.random.default_rng(1).integers(0, 256, (288, 320, 3), dtype=np.uint8))
+    est = InstanceEstimator(meta, torch_runner(InstanceEstimator(meta, None, net).inference_module()))
+    assert est.tile_margin_px >= RECEPTIVE_RADIUS_PX[stages] and est.tile_margin_px % 32 == 0
+    size = 2 * est.tile_margin_px + 96  # tiles of `size` px: two along each side of the image
+    x = as_input(np.random.default_rng(1).integers(0, 256, (size + 32, size + 64, 3), dtype=np.uint8))
     one = est.outputs(x)
-    tiled = tiled_outputs(est, x, 256)
-    assert len(tile_spans(288, 256, est.tile_margin_px)) == len(tile_spans(320, 256, est.tile_margin_px)) == 2
+    tiled = tiled_outputs(est, x, size)
+    margin = est.tile_margin_px
+    assert len(tile_spans(size + 32, size, margin)) == len(tile_spans(size + 64, size, margin)) == 2
     exact = np.abs(tiled - one).max()
     assert tiled.shape == one.shape and exact < 1e-5, exact
-    type(est).tile_margin_px, margin = 32, est.tile_margin_px  # a margin inside the receptive field
-    try:
-        short = np.abs(tiled_outputs(est, x, 192) - one).max()
-        assert short > 100 * max(exact, 1e-7), (exact, short)
-    finally:
-        type(est).tile_margin_px = margin
+    est.tile_margin_px = (RECEPTIVE_RADIUS_PX[stages] // 32 - 1) * 32  # a margin inside the receptive field
+    short = np.abs(tiled_outputs(est, x, size - 64) - one).max()
+    assert short > 100 * max(exact, 1e-7), (exact, short)
 
 
 def test_forced_tiles_find_the_grains_of_one_pass(caplog):

@@ -739,7 +739,7 @@ META_ONLY_SETTINGS = ("auto_scale",)
 # train.<arch> settings added after models were trained, and their values that change nothing: in a training's
 # slice only when set otherwise (`train_params`)
 SETTINGS_OFF = {"auto_scale": False, "min_visible_share": 0.0, "surface_texture": 0.0, "grain_colour": 0.0,
-                "calibration_datasets": None}
+                "trunk_stages": 2, "calibration_datasets": None}
 # train.<arch> settings that change what a trained network's maps are made into (the instance estimator's calibration
 # after training: its views, its sieve-size method, its read-out, the scenes it is fitted on), not the network: runs
 # that differ only in them share their network (bench/seed_spread.py --recalibrate-from)

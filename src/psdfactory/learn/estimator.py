@@ -22,8 +22,8 @@ What it may override: `meta_problems` (its meta's own keys), `inference_module` 
 exported and timed: normalised images in, the outputs `read` takes out), `outputs` (e.g. test-time
 augmentation), `definitions` / `weightings` / `in_definition` (size definitions and weightings it
 can read beyond its own), `scorer` (evaluation beyond the d-values: segmentation, size errors),
-and the class attributes `any_size`, `finds_grains`, `tile_margin_px`, `torchscript`, `int8`,
-`output_doc`.
+and the class attributes `any_size`, `finds_grains`, `tile_margin_px` (which a model may set for itself, from
+its meta), `torchscript`, `int8`, `output_doc`.
 """
 
 from __future__ import annotations
@@ -91,8 +91,9 @@ class Estimator:
     finds_grains: ClassVar[bool] = False  # predict can write masks, overlays and particle rows
     # `outputs` are per-pixel maps at the input's size, each pixel's depending on the input within this many
     # px only (its receptive field), and `read` takes maps of any size: predict may cut an image too large for
-    # one pass into tiles that overlap by this margin, stitch their maps and read them once. None: never tiled
-    tile_margin_px: ClassVar[int | None] = None
+    # one pass into tiles that overlap by this margin, stitch their maps and read them once. None: never tiled.
+    # A class's value, or a model's own where its network's receptive field depends on its meta
+    tile_margin_px: int | None = None
     torchscript: ClassVar[bool] = True  # export writes a TorchScript copy
     int8: ClassVar[bool] = True  # export and the benchmark may quantise it to int8
     output_doc: ClassVar[str] = "float32 Nx3: d10, d50, d90 in mm"

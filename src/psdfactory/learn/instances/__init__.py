@@ -2,6 +2,7 @@
 it, then read the PSD off the measured particles.
 
 - **Network** (`InstanceNet`): a torchvision ResNet-18 trunk cut after ``layer2`` (stride 8;
+  ``train.instances.trunk_stages: 3``: after ``layer3``, stride 16, with a decoder stage more at stride 8;
   ImageNet weights with ``train.pretrained`` as for the CNNs) and a light U-Net decoder with skips
   at strides 4, 2 and 1, predicting four maps (MAPS) at the input's resolution, any size: a
   foreground logit, a boundary logit, a logit of the normalised distance to the instance's

@@ -22,7 +22,7 @@ from ..estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS, DatasetScorer, Estimat
 from ..readout import apply_readout, outside_domain
 from . import ARCH
 from .measure import DEFAULT_SIEVE_METHOD, SIEVE_METHODS, InstanceMeasurements, measure_instances, sieve_size
-from .net import DECODER, FULL_RES, RECEPTIVE_RADIUS_PX, TRUNK, InstanceMaps, net_from_meta
+from .net import FULL_RES, RECEPTIVE_RADIUS_PX, TRUNK, TRUNK_STAGES, InstanceMaps, decoder_for, net_from_meta
 from .scoring import f1_score, fully_visible, match_instances, size_errors
 from .stats import STAT_NAMES, instance_stats, raw_psd
 from .targets import MAPS, MASK_MAPS, decode_size
@@ -78,6 +78,12 @@ def size_map_px(maps: np.ndarray) -> np.ndarray | None:
     return decode_size(maps[MAPS.index("size")]) if len(maps) > MAPS.index("size") else None
 
 
+def tile_margin(stages: int) -> int:
+    """The overlap (px, on the stride grid of 32) that tiles of an image need for a trunk of `stages` stages: its
+    maps' receptive radius rounded up."""
+    return -(-RECEPTIVE_RADIUS_PX[stages] // 32) * 32
+
+
 class InstanceEstimator(Estimator):
     """Images → instance masks, measurements and d10/d50/d90. `run` runs the network: a
     normalised float32 N×3×H×W tensor → N×C×H×W maps in [0, 1] (PyTorch or ONNX Runtime)."""
@@ -86,8 +92,9 @@ class InstanceEstimator(Estimator):
     finds_grains = True
     torchscript = False
     # its maps at a pixel depend on the input within the network's receptive field only, and the watershed runs
-    # on the stitched maps once: tiles need to overlap by that radius, not by a grain (none is ever cut)
-    tile_margin_px = -(-RECEPTIVE_RADIUS_PX // 32) * 32
+    # on the stitched maps once: tiles need to overlap by that radius, not by a grain (none is ever cut); the
+    # class's for the default trunk, each model's own for its trunk (__init__)
+    tile_margin_px = tile_margin(TRUNK_STAGES)
     int8 = False  # its maps feed a watershed: int8 is not offered (and not measured) for it
     output_name = "maps"
     output_doc = ("float32 NxCxHxW maps in [0, 1], C = len(maps): foreground, boundary, normalised distance, size map "
@@ -101,6 +108,7 @@ class InstanceEstimator(Estimator):
         self.method = meta.get("sieve_method", DEFAULT_SIEVE_METHOD)
         self.readout = meta.get("readout")
         self.views = TTA_VIEWS[meta.get("tta", "none")]  # a model from before TTA: one view
+        self.tile_margin_px = tile_margin(meta.get("trunk_stages", TRUNK_STAGES))
 
     @property
     def readout_held(self) -> bool:
@@ -305,10 +313,15 @@ def readout_problems(meta: dict) -> list[str]:
     problems = []
     if meta.get("trunk", TRUNK) != TRUNK:
         problems.append(f"trunk must be {TRUNK!r}")
-    dec = meta.get("decoder", list(DECODER))
-    if not (isinstance(dec, list) and len(dec) == len(DECODER)
+    stages = meta.get("trunk_stages", TRUNK_STAGES)
+    if isinstance(stages, bool) or stages not in RECEPTIVE_RADIUS_PX:
+        problems.append(f"trunk_stages must be one of {', '.join(map(str, RECEPTIVE_RADIUS_PX))}")
+        stages = TRUNK_STAGES
+    n_dec = len(decoder_for(stages))
+    dec = meta.get("decoder", list(decoder_for(stages)))
+    if not (isinstance(dec, list) and len(dec) == n_dec
             and all(isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= 1024 for c in dec)):
-        problems.append(f"decoder must be {len(DECODER)} channel counts")
+        problems.append(f"decoder must be {n_dec} channel counts")
     full = meta.get("full_res_channels", FULL_RES)
     if not (isinstance(full, int) and not isinstance(full, bool) and 1 <= full <= 1024):
         problems.append("full_res_channels must be a channel count")

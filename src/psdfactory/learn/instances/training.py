@@ -40,7 +40,7 @@ from ..runtime import (
 )
 from . import ARCH
 from .measure import SIEVE_METHODS
-from .net import DECODER, FULL_RES, TRUNK, InstanceMaps, build_instance_net
+from .net import FULL_RES, TRUNK, InstanceMaps, build_instance_net, decoder_for
 from .scoring import f1_score, match_instances
 from .stats import READOUT_TARGET_FEATURES, READOUTS
 from .targets import MAPS, boundary_weight, instance_loss, load_scenes, random_crops, read_scene_mask
@@ -64,6 +64,7 @@ class InstanceSettings:
     min_visible_share: float  # particles less of whose silhouette is in view are taught as background (grain_mask)
     surface_texture: float  # strength of the texture laid on the training crops' grains (augment.surface_texture)
     grain_colour: float  # strength of the colour of its own given to each training grain (augment.grain_colour)
+    trunk_stages: int  # the ResNet-18 stages its trunk keeps: 2 (stride 8) or 3 (stride 16; net.InstanceNet)
     calibration_datasets: tuple[str, ...] | None  # those of its datasets the calibration is fitted on (None: all)
 
     @classmethod
@@ -279,7 +280,7 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     x_val, t_val = load_scenes(results_root, val_rows, particles, settings.min_visible_share)
     crop = min(int(params.input_size), *x_train.shape[-2:])
     pw = boundary_weight(t_train)
-    model, weights_used = build_instance_net(params.pretrained)
+    model, weights_used = build_instance_net(params.pretrained, settings.trunk_stages)
     model = model.to(device).to(memory_format=torch.channels_last)
     batch = min(params.batch_size, len(x_train) * settings.crops_per_image)
     dummy = torch.zeros(batch, len(MAPS), crop, crop)
@@ -340,7 +341,8 @@ def train_instances(params, settings: InstanceSettings, results_root: Path, out_
     summary = {
         "arch": ARCH,
         "trunk": TRUNK,
-        "decoder": list(DECODER),
+        "trunk_stages": settings.trunk_stages,
+        "decoder": list(decoder_for(settings.trunk_stages)),
         "full_res_channels": FULL_RES,
         **scale_meta(c_train),
         "crop_size": crop,
