@@ -692,6 +692,36 @@ def test_onecycle_rises_to_lr_then_falls_to_a_thousandth_over_exactly_the_budget
         LrSchedule(opt, "cosine", 4, 25, 0.5, 1)
 
 
+@pytest.mark.parametrize(("schedule", "epochs_run"), [("plateau", 4), ("onecycle", 8)])
+def test_early_stopping_ends_a_plateau_training_and_leaves_a_one_cycle_schedule_its_epochs(schedule, epochs_run,
+                                                                                             tmp_path):
+    """Validation losses that last improve at epoch 2: with patience 2 the plateau schedule stops after epoch 4; a
+    one-cycle schedule runs its 8 epochs (its rate is lowest only at their end). Both keep epoch 2's weights."""
+    from psdfactory.learn.fit import FitTask, fit
+    from psdfactory.learn.runtime import LrSchedule
+
+    model = torch.nn.Linear(2, 1)
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+    sched = LrSchedule(opt, schedule, epochs=8, steps_per_epoch=1, lr_factor=0.5, lr_patience=1)
+    losses = iter([3.0, 1.0, 2.0, 2.5, 1.5, 1.2, 1.1, 1.05])
+    weights = []
+
+    def train_epoch(bar) -> float:
+        with torch.no_grad():
+            model.weight.add_(1.0)  # each epoch's weights differ: the kept ones name their epoch
+        opt.step()
+        sched.after_step()
+        weights.append(model.weight[0, 0].item())
+        return 1.0
+
+    task = FitTask(model, opt, sched, train_epoch, lambda: {"val_loss": next(losses)}, 1)
+    res = fit(task, "toy", 8, 2, tmp_path, "fp", {"arch": "toy"})
+    assert len(res.history) == epochs_run and res.best_epoch == 2 and res.best_loss == 1.0
+    assert res.stop_reason == ("max epochs" if schedule == "onecycle" else
+                               "early stopping (no better val loss for 2 epochs)")
+    assert model.weight[0, 0].item() == pytest.approx(weights[1])  # the best epoch's weights, not the last
+
+
 def interrupted_then_resumed(p, dataset, out, monkeypatch):
     """Train with `p` into `out`, interrupted in the second epoch, then run again (it resumes)."""
     from psdfactory.learn import cnn as train_mod

@@ -1,9 +1,9 @@
 """The one training loop every estimator uses (after torchvision's references/classification
 ``train.py``): epochs of `task.train_epoch`, a validation after each, the learning-rate schedule,
 the best checkpoint kept by validation loss, early stopping after `patience` epochs without a
-better one, ``history.csv`` and TensorBoard scalars, and a resumable ``checkpoints/last.pt``
-(everything needed to go on exactly where a killed job stopped, refused when the settings or the
-training data changed: `fingerprint`).
+better one (under a schedule that allows it: `LrSchedule.stops_early`), ``history.csv`` and
+TensorBoard scalars, and a resumable ``checkpoints/last.pt`` (everything needed to go on exactly
+where a killed job stopped, refused when the settings or the training data changed: `fingerprint`).
 """
 
 from __future__ import annotations
@@ -120,7 +120,7 @@ def _resume(task: FitTask, path: Path, fp: str, name: str, also: tuple[str, ...]
     return ck["epoch"] + 1, ck["history"], ck["best"], ck["best_epoch"], ck["stale"]
 
 
-def fit(task: FitTask, name: str, epochs: int, patience: int, out_dir: Path, fp: str, meta: dict,
+def fit(task: FitTask, name: str, epochs: int, patience: float, out_dir: Path, fp: str, meta: dict,
         ranks: Ranks = SINGLE, also_fp: tuple[str, ...] = ()) -> FitResult:
     """Train `task` for up to `epochs` epochs; the best weights (by validation loss) are in
     `task.model` at the end and in ``checkpoints/best.pt`` (with `meta`). Refuses a run that
@@ -134,6 +134,10 @@ def fit(task: FitTask, name: str, epochs: int, patience: int, out_dir: Path, fp:
     tb = SummaryWriter(str(out_dir / "tensorboard")) if ranks.main else None
     talk = ranks.main and logger.isEnabledFor(logging.INFO)
     stop_reason = "max epochs"
+    if not task.schedule.stops_early:  # its length is part of the schedule: the best epoch's weights are kept
+        patience = math.inf
+        if talk:
+            logger.info(f"{name}: the {task.schedule.name} schedule runs all {epochs} epochs (no early stopping)")
     t_start = time.perf_counter()
     try:
         for epoch in range(start, epochs):

@@ -141,6 +141,14 @@ class LrSchedule:
                 pct_start=ONECYCLE_WARMUP, anneal_strategy="cos", div_factor=ONECYCLE_START_DIV,
                 final_div_factor=ONECYCLE_FINAL_DIV)
 
+    @property
+    def stops_early(self) -> bool:
+        """Whether early stopping may end a training under it: under the plateau schedule. A one-cycle
+        schedule's rate falls to its lowest only at the end of train.epochs: a training stopped early under it
+        keeps weights of a high rate (measured: config/gravel.yaml at 200 epochs stopped at epoch 88 at
+        2.2e-3, and read worse than at 100 epochs run to their end; docs/experiments.md, 2026-12-01)."""
+        return self.name == "plateau"
+
     def after_step(self) -> None:
         # the last of the budgeted steps runs at the final rate; a step past it keeps that rate
         if self.name == "onecycle" and self.sched.last_epoch < self.sched.total_steps - 1:
