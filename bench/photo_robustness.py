@@ -164,21 +164,20 @@ def _f(v, pct: bool = False) -> str:
 def output_problems(photos: Path, models: list[Path], work: Path | None, json_out: Path | None) -> list[str]:
     """What is wrong with where a run would write, before any work: --work inside the photo set (its variants would
     land among the photos) or a model file; --json a model, a file of the photo set, or inside --work."""
-    def inside(p: Path, folder: Path) -> bool:
-        return p.resolve() == folder.resolve() or folder.resolve() in p.resolve().parents
+    from psdfactory.io import is_within, same_file
 
     found = []
     if work is not None:
-        if inside(work, photos):
+        if is_within(work, photos):
             found.append(f"--work {work} lies in the photo set {photos}: choose a folder outside it")
-        if any(work.resolve() == m.resolve() for m in models):
+        if any(same_file(work, m) for m in models):
             found.append(f"--work {work} is a --model file")
     if json_out is not None:
-        if any(json_out.resolve() == m.resolve() for m in models):
+        if any(same_file(json_out, m) for m in models):
             found.append(f"--json {json_out} is a --model file")
-        if inside(json_out, photos):
+        if is_within(json_out, photos):
             found.append(f"--json {json_out} lies in the photo set {photos}: choose a file outside it")
-        if work is not None and inside(json_out, work):
+        if work is not None and is_within(json_out, work):
             found.append(f"--json {json_out} lies in --work {work}, which the run writes: choose a file outside it")
         if json_out.is_dir():
             found.append(f"--json {json_out} is a folder, not a file")

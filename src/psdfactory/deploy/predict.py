@@ -19,7 +19,7 @@ from torch.nn import functional as F
 
 from .. import PsdError
 from ..config import AUTO_SCALE_MARGIN, LEGACY_AUTO_SCALE_PROBE, PREDICT_TILE_PX
-from ..io import read_photo, same_file, write_json
+from ..io import is_within, read_photo, same_file, write_json
 from ..learn.calibration import apply_calibration, calibration_note, source_reading
 from ..learn.data import to_input
 from ..learn.estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS, Estimator, Reading, reading_of
@@ -63,13 +63,6 @@ def image_files(inputs: list[str]) -> list[Path]:
     return files
 
 
-def _inside(path: Path, folder: Path) -> bool:
-    try:
-        return path.resolve().is_relative_to(folder.resolve())
-    except OSError:
-        return False
-
-
 def check_outputs(model: Path, inputs: list[str], **outputs: Path | None) -> None:
     """``_check_outputs``; a path the checks cannot look at (a name too long, no permission) is
     one line too."""
@@ -103,7 +96,7 @@ def _check_outputs(model: Path, inputs: list[str], out: Path | None = None, mask
         if same_file(path, model) or same_file(path, model.with_name("meta.json")):
             raise PsdError(f"{flag} {path} is the model: choose another file")
         hit = (next((i for i in images if same_file(path, i)), None)
-               or next((f for f in folders if _inside(path, f)), None))
+               or next((f for f in folders if is_within(path, f)), None))
         if hit is not None:
             raise PsdError(f"{flag} {path} would overwrite or land among the input images ({hit}): choose a file "
                            "outside them")
@@ -114,14 +107,14 @@ def _check_outputs(model: Path, inputs: list[str], out: Path | None = None, mask
             raise PsdError(f"{flag} {path}: {blocker} is a file, not a folder; choose another place")
     for i, (f1, p1) in enumerate(named):
         for f2, p2 in named[i + 1:]:
-            if same_file(p1, p2) or (f2 in dirs and _inside(p1, p2)) or (f1 in dirs and _inside(p2, p1)):
+            if same_file(p1, p2) or (f2 in dirs and is_within(p1, p2)) or (f1 in dirs and is_within(p2, p1)):
                 raise PsdError(f"{f1} {p1} and {f2} {p2} would write over each other: give each its own place")
     for flag, d in dirs.items():
         if d.exists() and not d.is_dir():
             raise PsdError(f"{flag} {d} is a file; give a folder")
-        if _inside(model, d) and same_file(model.parent, d):
+        if is_within(model, d) and same_file(model.parent, d):
             raise PsdError(f"{flag} {d} is the model's folder: choose another folder")
-        hit = next((f for f in folders if _inside(d, f) or same_file(d, f)), None)
+        hit = next((f for f in folders if is_within(d, f) or same_file(d, f)), None)
         if hit is not None:
             raise PsdError(f"{flag} {d} is or lies inside the input folder {hit}: its files would be read as "
                            "photos next time; choose a folder outside it")
