@@ -154,10 +154,10 @@ def main(argv: list[str] | None = None) -> int:
     from scipy.stats import spearmanr
 
     from psdfactory import PsdError
-    from psdfactory.io import same_file
+    from psdfactory.io import is_within, same_file
 
     if args.save is not None and (args.save.is_dir() or (args.model and same_file(args.save, args.model))
-                                  or any(args.save.resolve().is_relative_to(d.resolve()) for d in args.scenes)):
+                                  or any(is_within(args.save, d) for d in args.scenes)):
         ap.error(f"--save {args.save}: a folder, the model or inside a --scenes folder; give a new .npz file")
     scenes = sorted(s.parent for d in args.scenes for s in d.glob("*/labels.json") if (s.parent / "image.png").exists())
     if len(scenes) < 4:

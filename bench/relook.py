@@ -89,12 +89,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="a render setting (VALUE as YAML); repeatable")
     args = ap.parse_args(argv)
     from psdfactory import PsdError
+    from psdfactory.io import is_within
 
     scenes = sorted(p.parent for p in args.scenes.glob("*/poses.parquet") if (p.parent / "spec.json").exists())
     if not scenes:
         ap.error(f"no scene folders (spec.json, poses.parquet) under {args.scenes}")
     out = args.out.resolve()
-    if out == args.scenes.resolve() or any(out.is_relative_to(s.resolve()) for s in scenes):
+    if out == args.scenes.resolve() or any(is_within(out, s) for s in scenes):
         ap.error(f"--out {args.out} is --scenes or inside one of its scenes: the sources would be written into")
     if out.exists() and not out.is_dir():
         ap.error(f"--out {args.out} is a file: give a folder")

@@ -18,7 +18,7 @@ from psdfactory.config import AUTO_SCALE_MARGIN, AUTO_SCALE_PROBE, LEGACY_AUTO_S
 from psdfactory.deploy import calibrate as calibrate_mod  # imported before any test patches predict.load_predictor
 from psdfactory.deploy import predict
 from psdfactory.deploy.predict import AUTO_SCALE_MIN_PX, choose_scale
-from psdfactory.learn.instances.estimator import InstanceEstimator, readout_problems
+from psdfactory.learn.instances.estimator import InstanceEstimator, grid_shape, readout_problems
 from psdfactory.learn.instances.targets import encode_size
 
 from .test_photos import META, NET_MM, local_maps, read_csv
@@ -237,7 +237,7 @@ def test_large_grains_are_read_coarser_and_measured_in_mm_all_the_same(sized_mod
     scale = float(grains[0]["mask_mm_per_px"])
     if auto:
         assert scale == pytest.approx(4 * NET_MM, rel=0.02)
-        assert sized_model == [(256, 256), (129, 129)]  # the probe, then ~a quarter: never the model's 512 px
+        assert sized_model == [(256, 256), grid_shape(129, 129)]  # the probe, then ~a quarter: never the model's 512 px
         assert "bed.png: its grains look 6" in caplog.text
         assert "px at the model's scale, larger than on any of the model's validation images (at most 24 px): read " \
                "at 0.25" in caplog.text

@@ -753,3 +753,17 @@ def test_photo_robustness_refuses_outputs_among_its_inputs(tmp_path):
     other = tmp_path / "other" / "set"
     assert pr.variant_folder(work, photos, "grey") != pr.variant_folder(work, other, "grey")
     assert pr.variant_folder(work, photos, "grey").name == "grey"
+
+
+def test_relook_refuses_an_out_folder_inside_the_scenes_it_reads(tmp_path, capsys):
+    """relook.py: --out the scenes' folder itself or inside one of its scenes is refused before anything is written."""
+    rl = bench_module("relook")
+    scene = tmp_path / "scenes" / "s0"
+    scene.mkdir(parents=True)
+    (scene / "poses.parquet").write_bytes(b"")
+    (scene / "spec.json").write_text("{}")
+    for bad in (tmp_path / "scenes", scene / "again"):
+        with pytest.raises(SystemExit):
+            rl.main(["--scenes", str(tmp_path / "scenes"), "--out", str(bad), "--config", str(tmp_path / "none.yaml")])
+        assert "is --scenes or inside one of its scenes" in capsys.readouterr().err
+    assert not (scene / "again").exists()

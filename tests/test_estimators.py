@@ -72,6 +72,9 @@ def test_a_third_estimator_plugs_in_end_to_end(plugin, dataset, tmp_path):  # no
     assert len(rows) == 3 and all(not r["error"] and r["d10_mm"] <= r["d90_mm"] for r in rows)
     with pytest.raises(PsdError, match="need a model that finds grains"):
         predict_files(model, images, overlay_dir=tmp_path / "o")
+    with pytest.raises(PsdError, match="which the export would replace"):  # the export folder replaces its model
+        export(model, model.parent)
+    assert model.is_file()
     rep = export(model, tmp_path / "exp")
     assert rep["onnx"]["max_abs_diff"] < 1e-3 and rep["torchscript"]["max_abs_diff"] < 1e-3
     from_onnx = predict_files(tmp_path / "exp" / "model.onnx", images)

@@ -30,7 +30,7 @@ from psdfactory.deploy.predict import (
 )
 from psdfactory.learn.data import IMAGENET_MEAN, IMAGENET_STD
 from psdfactory.learn.estimator import Reading
-from psdfactory.learn.instances.estimator import InstanceEstimator
+from psdfactory.learn.instances.estimator import InstanceEstimator, grid_shape
 from psdfactory.learn.instances.measure import measure_instances
 from psdfactory.learn.instances.scoring import match_instances
 from psdfactory.learn.instances.watershed import DEFAULT_POSTPROCESS
@@ -133,15 +133,17 @@ def test_tile_spans_cover_the_axis_with_cores_and_keep_tiles_on_the_stride_grid(
     assert len(tile_spans(4000, 1024, 96)) == 1 + math.ceil((4000 - 1024) / (1024 - 2 * 96))
 
 
-@pytest.mark.parametrize("stages", [2, 3])
-def test_tiled_maps_of_the_network_equal_one_pass(stages):
+@pytest.mark.parametrize(("stages", "tta"), [(2, "none"), (3, "none"), (2, "d4")])
+def test_tiled_maps_of_the_network_equal_one_pass(stages, tta):
     """The instance network's maps, tile by tile with the estimator's margin, are those of one
-    pass (its receptive field, for either trunk, is within the margin); with a margin too small they are not."""
+    pass (its receptive field, for either trunk, is within the margin), on an image whose sides are
+    off the stride grid, averaged over the eight turned and mirrored views too (each view's strides
+    fall on the same pixels in a tile as in the whole image); with a margin too small they are not."""
     from psdfactory.learn.instances.net import RECEPTIVE_RADIUS_PX, net_from_meta
     from psdfactory.learn.runtime import torch_runner
 
     torch.manual_seed(0)
-    meta = dict(META, maps=["foreground", "boundary", "distance", "size"], trunk_stages=stages)
+    meta = dict(META, maps=["foreground", "boundary", "distance", "size"], trunk_stages=stages, tta=tta)
     net = net_from_meta(meta).eval()
     for m in net.modules():  # an untrained network with batch-norm statistics that are not the identity
         if isinstance(m, torch.nn.BatchNorm2d):
@@ -150,11 +152,12 @@ def test_tiled_maps_of_the_network_equal_one_pass(stages):
     est = InstanceEstimator(meta, torch_runner(InstanceEstimator(meta, None, net).inference_module()))
     assert est.tile_margin_px >= RECEPTIVE_RADIUS_PX[stages] and est.tile_margin_px % 32 == 0
     size = 2 * est.tile_margin_px + 96  # tiles of `size` px: two along each side of the image
-    x = as_input(np.random.default_rng(1).integers(0, 256, (size + 32, size + 64, 3), dtype=np.uint8))
+    x = as_input(np.random.default_rng(1).integers(0, 256, (size + 40, size + 70, 3), dtype=np.uint8))
     one = est.outputs(x)
     tiled = tiled_outputs(est, x, size)
     margin = est.tile_margin_px
-    assert len(tile_spans(size + 32, size, margin)) == len(tile_spans(size + 64, size, margin)) == 2
+    assert len(est.views) == (8 if tta == "d4" else 1)
+    assert len(tile_spans(size + 40, size, margin)) == len(tile_spans(size + 70, size, margin)) == 2
     exact = np.abs(tiled - one).max()
     assert tiled.shape == one.shape and exact < 1e-5, exact
     est.tile_margin_px = (RECEPTIVE_RADIUS_PX[stages] // 32 - 1) * 32  # a margin inside the receptive field
@@ -169,7 +172,7 @@ def test_forced_tiles_find_the_grains_of_one_pass(caplog):
     calls: list = []
     est = synthetic_estimator(calls)
     one = predict_image(est, as_input(image), NET_MM, tile=1024).grains
-    assert calls == [(480, 540)]
+    assert calls == [grid_shape(480, 540)]  # one pass, on the stride grid
     calls.clear()
     with caplog.at_level(logging.INFO, logger="psdfactory.deploy.predict"):
         tiled = predict_image(est, as_input(image), NET_MM, tile=256, where="bed.png").grains
@@ -219,7 +222,7 @@ def test_particle_table_measures_known_shapes_in_mm_at_the_photo_scale(synthetic
     args = ["predict", "--model", "m.pt", "--mm-per-px", str(photo_mm), "--particles", str(out),
             "--masks", str(tmp_path / "masks"), str(tmp_path / "shapes.png")]
     assert main(args) == 0
-    assert synthetic_model == [(200, 240)]  # the network saw the photo at its own scale
+    assert synthetic_model == [grid_shape(200, 240)]  # the network saw the photo at its own scale (on the grid)
     rows = read_csv(out)
     assert list(rows[0]) == PARTICLE_COLUMNS and len(rows) == 3
     assert all(c.endswith(("_mm", "_mm2", "_mm3", "_px")) for c in PARTICLE_COLUMNS if c not in
@@ -425,7 +428,7 @@ def test_exif_orientation_is_honoured(synthetic_model, tmp_path):
     Image.fromarray(stored).save(tmp_path / "phone.jpg", exif=exif.tobytes(), quality=95)
     assert main(["predict", "--model", "m.pt", "--mm-per-px", str(NET_MM), "--masks", str(tmp_path / "m"),
                  "--particles", str(tmp_path / "g.csv"), str(tmp_path / "phone.jpg")]) == 0
-    assert synthetic_model == [(240, 160)]
+    assert synthetic_model == [grid_shape(240, 160)]
     with Image.open(tmp_path / "m" / "phone.png") as im:
         assert im.size == (160, 240)
         mask = np.asarray(im)

@@ -46,12 +46,13 @@ def cmd_manifest(a: argparse.Namespace) -> None:
 
 
 def cmd_show(a: argparse.Namespace) -> None:
+    from .io import is_within
     from .scene.show import contact_sheet
 
     if Path(a.out).is_dir():
         raise PsdError(f"--out {a.out} is a folder; give a .png file name")
     scenes = Path(a.results) / a.dataset / "scenes"
-    if Path(a.out).resolve().is_relative_to(scenes.resolve()):
+    if is_within(a.out, scenes):
         raise PsdError(f"--out {a.out} is inside the scenes it shows ({scenes}); write the sheet elsewhere")
     if Path(a.out).suffix.lower() != ".png":
         raise PsdError(f"--out {a.out}: must end in .png")

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from .. import PsdError
-from ..io import atomic_dir, atomic_path, write_json
+from ..io import atomic_dir, atomic_path, is_within, write_json
 from ..psd import NAMES
 
 logger = logging.getLogger(__name__)
@@ -29,7 +29,7 @@ def export(model_path: Path, out_dir: Path, int8_results: Path | None = None, da
     are made and checked. A failed export leaves `out_dir` as it was; an export folder never
     holds parts of two models."""
     out_dir, model_path = Path(out_dir), Path(model_path)
-    if model_path.resolve().is_relative_to(out_dir.resolve()):
+    if is_within(model_path, out_dir):
         raise PsdError(f"--out-dir {out_dir} holds the model {model_path}, which the export would replace; "
                        "give another folder")
     if int8_results is not None:

@@ -23,6 +23,7 @@ from ..io import is_within, read_photo, same_file, write_json
 from ..learn.calibration import apply_calibration, calibration_note, source_reading
 from ..learn.data import to_input
 from ..learn.estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS, Estimator, Reading, reading_of
+from ..learn.instances.net import GRID_PX
 from ..photoset import IMAGE_SUFFIXES
 from ..psd import SOLID_DEFINITIONS, TARGETS
 
@@ -217,7 +218,7 @@ def tile_spans(n: int, tile: int, margin: int) -> list[tuple[int, int, int, int]
     """(core start, core end, tile start, tile end) along an axis of `n` px cut into tiles of at
     most `tile` px: the cores (each tile's own part of the stitched maps) lie side by side and
     cover the axis; each tile reaches `margin` px beyond its core on both sides, except at the
-    image's own edges. With `tile` and `margin` multiples of 32 every tile starts on the
+    image's own edges. With `tile` and `margin` multiples of GRID_PX every tile starts on the
     network's stride grid, as in one pass; the last one ends at the image's edge."""
     if n <= tile:
         return [(0, n, 0, n)]
@@ -234,10 +235,11 @@ def tile_spans(n: int, tile: int, margin: int) -> list[tuple[int, int, int, int]
 
 
 def check_tile(tile: int, margin: int) -> None:
-    """A tile must hold its two margins and a core of 32 px, and sit on the stride grid."""
-    if tile % 32 or tile < 2 * margin + 32:
-        raise PsdError(f"--tile {tile}: give a multiple of 32 of at least {2 * margin + 32} px (two margins of "
-                       f"{margin} px, what this model's maps see around a pixel, and a core of 32 px)")
+    """A tile must hold its two margins and a core of GRID_PX, and sit on the stride grid."""
+    if tile % GRID_PX or tile < 2 * margin + GRID_PX:
+        raise PsdError(f"--tile {tile}: give a multiple of {GRID_PX} of at least {2 * margin + GRID_PX} px "
+                       f"(two margins of {margin} px, what this model's maps see around a pixel, and a core of "
+                       f"{GRID_PX} px)")
 
 
 def tiled_outputs(est: Estimator, x: torch.Tensor, tile: int, where: str = "") -> np.ndarray:

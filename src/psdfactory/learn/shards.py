@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from .. import PsdError, __version__
-from ..io import atomic_dir, read_parquet, read_png, write_json
+from ..io import atomic_dir, is_within, read_parquet, read_png, write_json
 from ..manifest import PARTICLE_READ_COLUMNS
 from ..packs import (
     FORMAT,
@@ -210,10 +210,9 @@ def pack(results_root: Path, datasets: list[str] | tuple[str, ...], out_dir: Pat
     if spec.problems():
         raise PsdError("; ".join(spec.problems()))
     results_root, out_dir = Path(results_root), Path(out_dir)
-    out = out_dir.resolve()
     for d in [results_root, *(results_root / d for d in datasets)]:
-        inside = out.is_relative_to(d.resolve()) and d != results_root  # a pack may sit in the results root
-        if inside or d.resolve().is_relative_to(out):
+        inside = is_within(out_dir, d) and d != results_root  # a pack may sit in the results root
+        if inside or is_within(d, out_dir):
             raise PsdError(f"--out {out_dir} overlaps {d}, which the pack reads (the pack replaces its whole "
                            "folder): write the pack to a folder of its own")
     if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / INDEX).is_file():

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from ... import PsdError
 from ...psd import FOOTPRINT_DEFINITIONS, GRAIN_WEIGHTINGS, NAMES, SOLID_DEFINITIONS, TARGETS, weighted_percentiles
@@ -22,7 +23,7 @@ from ..estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS, DatasetScorer, Estimat
 from ..readout import apply_readout, outside_domain
 from . import ARCH
 from .measure import DEFAULT_SIEVE_METHOD, SIEVE_METHODS, InstanceMeasurements, measure_instances, sieve_size
-from .net import FULL_RES, RECEPTIVE_RADIUS_PX, TRUNK, TRUNK_STAGES, InstanceMaps, decoder_for, net_from_meta
+from .net import FULL_RES, GRID_PX, RECEPTIVE_RADIUS_PX, TRUNK, TRUNK_STAGES, InstanceMaps, decoder_for, net_from_meta
 from .scoring import f1_score, fully_visible, match_instances, size_errors
 from .stats import STAT_NAMES, instance_stats, raw_psd
 from .targets import MAPS, MASK_MAPS, decode_size
@@ -62,15 +63,36 @@ def footprint_percentiles(m: InstanceMeasurements, definition: str, weighting: s
     return weighted_percentiles(size[whole], None if weights is None else weights[whole])
 
 
+def grid_shape(h: int, w: int) -> tuple[int, int]:
+    """H, W rounded up to multiples of GRID_PX: the size the network runs an H×W image at (`on_grid`)."""
+    return -(-h // GRID_PX) * GRID_PX, -(-w // GRID_PX) * GRID_PX
+
+
+def on_grid(x: torch.Tensor) -> torch.Tensor:
+    """N×C×H×W `x` padded at its bottom and right, by repeating its last row and column, to `grid_shape`."""
+    h, w = x.shape[-2:]
+    gh, gw = grid_shape(h, w)
+    return F.pad(x, (0, gw - w, 0, gh - h), mode="replicate") if (gh, gw) != (h, w) else x
+
+
 def averaged_maps(maps_fn, x: torch.Tensor, views: tuple[tuple[int, bool], ...]) -> np.ndarray:
     """The mean of `maps_fn` (N×3×H×W → N×C×H×W maps) over `views` of the images `x`, each
-    view's maps turned back into the image's frame (test-time augmentation; any H, W)."""
+    view's maps turned back into the image's frame (test-time augmentation; any H, W). The images
+    are put on the stride grid first (`on_grid`), so that the maps of a tile starting on the grid
+    are those of one pass: each of the network's strided maps is then exactly half the size of the
+    one before, and its decoder's upsampling puts every pixel where one pass puts it (off the grid
+    the ratio of two sizes, so each pixel's place, depends on the image's whole size); and a turned
+    or mirrored view starts at a corner on the grid too, so every view samples the image at the
+    same pixels (one that started at an off-grid far corner would put its strides elsewhere in a
+    tile than in the whole image)."""
+    h, w = x.shape[-2:]
+    x = on_grid(x)
     total = None
     for k, flip in views:
         m = torch.from_numpy(np.asarray(maps_fn(view(x, k, flip).contiguous()), dtype=np.float32))
         m = unview(m, k, flip)
         total = m if total is None else total + m
-    return (total / len(views)).numpy()
+    return (total / len(views))[..., :h, :w].contiguous().numpy()
 
 
 def size_map_px(maps: np.ndarray) -> np.ndarray | None:
@@ -81,7 +103,7 @@ def size_map_px(maps: np.ndarray) -> np.ndarray | None:
 def tile_margin(stages: int) -> int:
     """The overlap (px, on the stride grid of 32) that tiles of an image need for a trunk of `stages` stages: its
     maps' receptive radius rounded up."""
-    return -(-RECEPTIVE_RADIUS_PX[stages] // 32) * 32
+    return -(-RECEPTIVE_RADIUS_PX[stages] // GRID_PX) * GRID_PX
 
 
 class InstanceEstimator(Estimator):

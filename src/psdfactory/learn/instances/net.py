@@ -25,6 +25,9 @@ FULL_RES = 8  # channels of the full-resolution skip
 # convs at strides 4, 2 and 1); 150 px with layer3's four at stride 16 and a decoder stage at stride 8. Nothing
 # farther changes them: tests/test_photos.py measures it again.
 RECEPTIVE_RADIUS_PX = {2: 70, 3: 150}
+# The grid (px) every trunk's strides divide: an input padded at its bottom and right to a multiple of it is sampled
+# at the same pixels of the image whichever way it is turned or mirrored; tiles that start on it see what one pass sees.
+GRID_PX = 32
 
 
 def decoder_for(stages: int) -> tuple[int, ...]:
