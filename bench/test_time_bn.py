@@ -53,7 +53,7 @@ def patch(alpha: float) -> None:
     """Make every InstanceEstimator adapt its network to each image it reads, on PyTorch."""
     import psdfactory.deploy.fastpath as fastpath
     from psdfactory.learn.data import normalise
-    from psdfactory.learn.instances.estimator import InstanceEstimator, averaged_maps
+    from psdfactory.learn.instances.estimator import InstanceEstimator, averaged_maps, on_grid
 
     if not hasattr(fastpath, "_choose_as_shipped"):  # once: later calls change the blend only
         fastpath._choose_as_shipped = choose = fastpath.choose
@@ -63,7 +63,7 @@ def patch(alpha: float) -> None:
         x = normalise(images_u8)
         out = []
         for i in range(len(x)):
-            adapt(self.net, x[i:i + 1], alpha)
+            adapt(self.net, on_grid(x[i:i + 1]), alpha)  # the statistics of what the network then runs
             out.append(averaged_maps(self.run, x[i:i + 1], self.views))
         return np.concatenate(out)
 

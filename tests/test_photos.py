@@ -133,12 +133,12 @@ def test_tile_spans_cover_the_axis_with_cores_and_keep_tiles_on_the_stride_grid(
     assert len(tile_spans(4000, 1024, 96)) == 1 + math.ceil((4000 - 1024) / (1024 - 2 * 96))
 
 
-@pytest.mark.parametrize(("stages", "tta"), [(2, "none"), (3, "none"), (2, "d4")])
+@pytest.mark.parametrize(("stages", "tta"), [(2, "none"), (3, "none"), (2, "d4"), (3, "d4")])
 def test_tiled_maps_of_the_network_equal_one_pass(stages, tta):
     """The instance network's maps, tile by tile with the estimator's margin, are those of one
     pass (its receptive field, for either trunk, is within the margin), on an image whose sides are
     off the stride grid, averaged over the eight turned and mirrored views too (each view's strides
-    fall on the same pixels in a tile as in the whole image); with a margin too small they are not."""
+    fall on the same pixels in a tile as in the whole image); with a margin too small (one view) they are not."""
     from psdfactory.learn.instances.net import RECEPTIVE_RADIUS_PX, net_from_meta
     from psdfactory.learn.runtime import torch_runner
 
@@ -160,9 +160,10 @@ def test_tiled_maps_of_the_network_equal_one_pass(stages, tta):
     assert len(tile_spans(size + 40, size, margin)) == len(tile_spans(size + 70, size, margin)) == 2
     exact = np.abs(tiled - one).max()
     assert tiled.shape == one.shape and exact < 1e-5, exact
-    est.tile_margin_px = (RECEPTIVE_RADIUS_PX[stages] // 32 - 1) * 32  # a margin inside the receptive field
-    short = np.abs(tiled_outputs(est, x, size - 64) - one).max()
-    assert short > 100 * max(exact, 1e-7), (exact, short)
+    if tta == "none":  # one view: a margin inside the receptive field shows (eight views average it down)
+        est.tile_margin_px = (RECEPTIVE_RADIUS_PX[stages] // 32 - 1) * 32
+        short = np.abs(tiled_outputs(est, x, size - 64) - one).max()
+        assert short > 100 * max(exact, 1e-7), (exact, short)
 
 
 def test_forced_tiles_find_the_grains_of_one_pass(caplog):

@@ -120,9 +120,10 @@ class InstanceEstimator(Estimator):
     int8 = False  # its maps feed a watershed: int8 is not offered (and not measured) for it
     output_name = "maps"
     output_doc = ("float32 NxCxHxW maps in [0, 1], C = len(maps): foreground, boundary, normalised distance, size map "
-                  "(log size of each pixel's particle); average them over the views meta.json's tta names, then "
-                  "post-process with psdfactory.learn.instances.estimator.InstanceEstimator (watershed, measurement, "
-                  "read-out in meta.json)")
+                  "(log size of each pixel's particle); run each image padded at its bottom and right (last row and "
+                  "column repeated) to multiples of 32 px, average the maps over the views meta.json's tta names, cut "
+                  "them back to the image, then post-process with psdfactory.learn.instances.estimator."
+                  "InstanceEstimator (watershed, measurement, read-out in meta.json)")
 
     def __init__(self, meta: dict, run=None, net: nn.Module | None = None):
         super().__init__(meta, run, net)
