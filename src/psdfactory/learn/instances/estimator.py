@@ -63,9 +63,14 @@ def footprint_percentiles(m: InstanceMeasurements, definition: str, weighting: s
     return weighted_percentiles(size[whole], None if weights is None else weights[whole])
 
 
+def to_grid(n: int) -> int:
+    """`n` px rounded up to a multiple of GRID_PX."""
+    return -(-n // GRID_PX) * GRID_PX
+
+
 def grid_shape(h: int, w: int) -> tuple[int, int]:
     """H, W rounded up to multiples of GRID_PX: the size the network runs an H×W image at (`on_grid`)."""
-    return -(-h // GRID_PX) * GRID_PX, -(-w // GRID_PX) * GRID_PX
+    return to_grid(h), to_grid(w)
 
 
 def on_grid(x: torch.Tensor) -> torch.Tensor:
@@ -101,9 +106,9 @@ def size_map_px(maps: np.ndarray) -> np.ndarray | None:
 
 
 def tile_margin(stages: int) -> int:
-    """The overlap (px, on the stride grid of 32) that tiles of an image need for a trunk of `stages` stages: its
+    """The overlap (px, on the grid of GRID_PX) that tiles of an image need for a trunk of `stages` stages: its
     maps' receptive radius rounded up."""
-    return -(-RECEPTIVE_RADIUS_PX[stages] // GRID_PX) * GRID_PX
+    return to_grid(RECEPTIVE_RADIUS_PX[stages])
 
 
 class InstanceEstimator(Estimator):
