@@ -122,9 +122,11 @@ def test_perfect_maps_give_back_the_true_instances():
 @pytest.mark.parametrize("tta", ["flips", "d4"])
 def test_test_time_views_are_turned_back_into_the_image_frame(tta):
     """averaged_maps: maps that follow the image (here its own pixels) come back unchanged on a
-    non-square image; a map that marks its input's top-left pixel, whatever the view, comes
-    back as a quarter on each of the image's four corners (each corner is one view in four)."""
-    x = torch.arange(2 * 3 * 5 * 7, dtype=torch.float32).reshape(2, 3, 5, 7)
+    non-square image off the 32-px grid, every view run on the image padded to the grid; a map that
+    marks its input's top-left pixel, whatever the view, comes back as a quarter on each of the
+    image's four corners when the image is on the grid (each corner is one view in four), and on its
+    top-left only when it is not (the other views' top-left is a corner of the padding, cut away)."""
+    x = torch.arange(2 * 3 * 5 * 40, dtype=torch.float32).reshape(2, 3, 5, 40)
     seen = []
 
     def follows(v):
@@ -132,18 +134,21 @@ def test_test_time_views_are_turned_back_into_the_image_frame(tta):
         return v[:, :2].numpy()
 
     got = averaged_maps(follows, x, TTA_VIEWS[tta])
-    assert got.shape == (2, 2, 5, 7) and np.allclose(got, x[:, :2].numpy())
-    assert len(seen) == len(TTA_VIEWS[tta]) and ((7, 5) in seen) == (tta == "d4")  # quarter turns swap H and W
+    assert got.shape == (2, 2, 5, 40) and np.allclose(got, x[:, :2].numpy())
+    assert len(seen) == len(TTA_VIEWS[tta]) and (32, 64) in seen
+    assert set(seen) <= {(32, 64), (64, 32)} and ((64, 32) in seen) == (tta == "d4")  # quarter turns swap H and W
 
     def top_left(v):
         m = np.zeros((v.shape[0], 1, *v.shape[-2:]), np.float32)
         m[:, :, 0, 0] = 1
         return m
 
-    got = averaged_maps(top_left, x, TTA_VIEWS[tta])[0, 0]
-    corners = np.zeros((5, 7))
+    corners = np.zeros((32, 64))
     corners[[0, 0, -1, -1], [0, -1, 0, -1]] = 0.25
-    assert np.allclose(got, corners)
+    assert np.allclose(averaged_maps(top_left, torch.zeros(1, 3, 32, 64), TTA_VIEWS[tta])[0, 0], corners)
+    off_grid = np.zeros((5, 40))
+    off_grid[0, 0] = 0.25
+    assert np.allclose(averaged_maps(top_left, x, TTA_VIEWS[tta])[0, 0], off_grid)
 
 
 def test_estimator_averages_the_model_views_and_checks_the_setting():
