@@ -388,6 +388,23 @@ def test_an_affine_calibration_below_ten_and_the_commands_refusals(model, plugin
     np.testing.assert_allclose([[r["d10_mm"], r["d50_mm"], r["d90_mm"]] for r in got],
                                cal.apply(block["params"], raw_d), rtol=1e-6)
 
+    # a box of every photo (--roi): the whole of these images reads as without one, and the block records it; a
+    # smaller box without a scale is not the model's field of view
+    from PIL import Image
+
+    from psdfactory.photoset import Region
+
+    with Image.open(images[0]) as im:
+        w, h = im.size
+    boxed = calibrate(model_pt, ref, images, tmp_path / "boxed.pt", mm_per_px=None, roi=Region(0, 0, w, h))
+    assert boxed["roi"] == f"0,0,{w},{h}" and "roi" not in block
+    np.testing.assert_allclose(boxed["params"]["slope"], block["params"]["slope"])
+    reading_of_block = {"size_definition": boxed["size_definition"], "weighting": boxed["weighting"]}
+    assert f"the box 0,0,{w},{h} of each photo" in cal.calibration_note({"calibration": boxed}, reading_of_block)
+    assert any("calibration.roi" in p for p in cal.calibration_problems({**boxed, "roi": "0,0,-1,5"}))
+    with pytest.raises(PsdError, match=f"{w - 1} x {h} px is not the model's field of view"):
+        calibrate(model_pt, ref, images, tmp_path / "small.pt", mm_per_px=None, roi=Region(0, 0, w - 1, h))
+
     # references of another weighting than the model reads (a sieve analysis counts mass): its reading corrected to
     # them, the calibrated model's d-values labelled as the references are
     vol = calibrate(model_pt, ref, images, tmp_path / "volume.pt", mm_per_px=None, weighting="volume")

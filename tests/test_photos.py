@@ -249,6 +249,95 @@ def test_particle_table_measures_known_shapes_in_mm_at_the_photo_scale(synthetic
         assert m.size == (w, h)
 
 
+def shapes_photo(h: int = 400, w: int = 480) -> np.ndarray:
+    """A photo at 0.25 mm/px: an 8 × 20 mm rectangle (rows 100-131, columns 60-139), an ellipse of
+    axes 24 × 10 mm centred at (250.5, 300.5) and a disc cut by the bottom edge."""
+    img = np.zeros((h, w, 3), np.uint8)
+    img[100:132, 60:140] = 200
+    rr, cc = np.indices((h, w))
+    img[((rr - 250.5) / 20) ** 2 + ((cc - 300.5) / 48) ** 2 <= 1] = 200
+    img[((rr - 380) ** 2 + (cc - 420) ** 2) <= 40**2] = 200
+    return img
+
+
+def test_a_box_of_the_photo_reads_as_the_photo_cropped_to_it(synthetic_model, tmp_path, capsys):
+    """predict --roi reads the box as a photo cropped to it would read (the same d-values and
+    grains; the network sees the box alone, at the model's scale); the particle table keeps the
+    photo's pixels, the mask is the box's; a grain cut by the box's side touches the edge; a box
+    beyond the photo fails that photo's row, naming the box and the photo's size."""
+    from psdfactory.cli import main
+
+    img = shapes_photo()
+    Image.fromarray(img).save(tmp_path / "shapes.png")
+    left, top, right, bottom = 40, 80, 400, 320  # the rectangle and the ellipse, not the disc
+    Image.fromarray(img[top:bottom, left:right]).save(tmp_path / "cropped.png")
+
+    def run(name, *extra):
+        out, table = tmp_path / f"{name}.csv", tmp_path / f"{name}_grains.csv"
+        code = main(["predict", "--model", "m.pt", "--mm-per-px", "0.25", "--size-definition", "feret-min",
+                     "--out", str(out), "--particles", str(table), "--masks", str(tmp_path / name), *extra])
+        return code, read_csv(out), read_csv(table)
+
+    code, boxed, boxed_grains = run("boxed", "--roi", f"{left},{top},{right},{bottom}", str(tmp_path / "shapes.png"))
+    assert code == 0 and synthetic_model == [grid_shape(120, 180)]  # the box alone, at 0.5 mm/px
+    code, cropped, cropped_grains = run("cropped", str(tmp_path / "cropped.png"))
+    assert code == 0
+    assert [boxed[0][t] for t in ("d10_mm", "d50_mm", "d90_mm")] == [cropped[0][t] for t in ("d10_mm", "d50_mm",
+                                                                                              "d90_mm")]
+    assert len(boxed_grains) == len(cropped_grains) == 2
+    assert all(g["touches_edge"] == "False" for g in boxed_grains)
+    for b, c in zip(sorted(boxed_grains, key=lambda g: g["id"]), sorted(cropped_grains, key=lambda g: g["id"]),
+                    strict=True):
+        assert float(b["centroid_row_px"]) == pytest.approx(float(c["centroid_row_px"]) + top, abs=0.05)
+        assert float(b["centroid_col_px"]) == pytest.approx(float(c["centroid_col_px"]) + left, abs=0.05)
+        assert b["feret_min_mm"] == c["feret_min_mm"]
+    rect = min(boxed_grains, key=lambda g: float(g["area_mm2"]))
+    assert float(rect["centroid_row_px"]) == pytest.approx(115.5, abs=1) and float(rect["centroid_col_px"]) == \
+        pytest.approx(99.5, abs=1)  # in the photo's pixels
+    with Image.open(tmp_path / "boxed" / "shapes.png") as m:
+        assert m.size == (right - left, bottom - top)
+
+    code, cut, cut_grains = run("cut", "--roi", "40,80,400,250", str(tmp_path / "shapes.png"))  # through the ellipse
+    assert code == 0 and sorted(g["touches_edge"] for g in cut_grains) == ["False", "True"]
+
+    code, beyond, _ = run("beyond", "--roi", "0,0,481,400", str(tmp_path / "shapes.png"))
+    assert code == 1 and beyond[0]["d50_mm"] == ""
+    assert "--roi 0,0,481,400 is not inside the photo (480 x 400 px" in beyond[0]["error"]
+    assert "is not inside the photo" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(("text", "says"), [("10,10,5,20", "RIGHT above LEFT"), ("0,0,100", "four whole numbers"),
+                                            ("-1,0,10,10", "0 or more"), ("a,b,c,d", "four whole numbers"),
+                                            ("0,0,1.5,10", "four whole numbers"), ("0,20,10,20", "BOTTOM above")])
+def test_a_box_that_is_not_one_is_refused_in_one_line(text, says, tmp_path, capsys):
+    from psdfactory.cli import main
+    from psdfactory.photoset import Region
+
+    with pytest.raises(PsdError, match=says):
+        Region.parse(text)
+    (tmp_path / "a.png").write_bytes(b"not read")
+    with pytest.raises(SystemExit) as e:
+        main(["predict", "--model", "m.pt", f"--roi={text}", str(tmp_path / "a.png")])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--roi" in err[0] and says in err[0], err
+
+
+def test_a_box_is_cut_from_a_photo_decoded_reduced():
+    """`Region.crop` takes the box's share of a photo decoded at a fraction of its size."""
+    from psdfactory.photoset import Region
+
+    full = np.arange(400 * 600).reshape(400, 600)
+    box = Region(60, 100, 300, 260)
+    assert (box.crop(full, (400, 600)) == full[100:260, 60:300]).all()
+    half = full[::2, ::2]
+    assert (box.crop(half, (400, 600)) == half[50:130, 30:150]).all()
+    assert box.size_hw == (160, 240)
+    with pytest.raises(PsdError, match="not inside the photo"):
+        box.need("p.jpg", lambda h, w: (h, w))(200, 600)
+    assert box.need("p.jpg", lambda h, w: (h // 2, w // 2))(400, 600) == (200, 300)
+
+
 # ---- weighting --------------------------------------------------------------------------------
 
 

@@ -279,7 +279,7 @@ def cmd_predict(a: argparse.Namespace) -> int:
                                        masks_dir=Path(a.masks) if a.masks else None,
                                        particles_out=Path(a.particles) if a.particles else None,
                                        size_definition=a.size_definition, weighting=a.weighting, tile=a.tile,
-                                       runtime=a.runtime, auto_scale=a.auto_scale)
+                                       runtime=a.runtime, auto_scale=a.auto_scale, roi=a.roi)
     except KeyboardInterrupt:
         if out is not None:
             logger.error(f"psdfactory predict: interrupted; the rows done so far are in {partial_path(out)} "
@@ -299,7 +299,7 @@ def cmd_calibrate(a: argparse.Namespace) -> None:
     pick_device(a.device)
     block = calibrate(Path(a.model), Path(a.reference), a.images, Path(a.out), a.mm_per_px,
                       size_definition=a.size_definition, device=a.device, auto_scale=a.auto_scale,
-                      weighting=a.weighting)
+                      weighting=a.weighting, roi=a.roi)
     print("\n".join(table_lines(block)), flush=True)
 
 
@@ -487,6 +487,24 @@ def _scale_arg(p: argparse.ArgumentParser, then: str) -> None:
                    help="scale of the images in mm per pixel (1e-4 to 1e3)" + then)
 
 
+def roi_arg(text: str):
+    """argparse type of --roi: a `photoset.Region`."""
+    from .photoset import Region
+
+    try:
+        return Region.parse(text)
+    except PsdError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix(f"--roi {text!r}: ")) from None
+
+
+def _roi_arg(p: argparse.ArgumentParser, then: str) -> None:
+    p.add_argument("--roi", type=roi_arg, metavar="L,T,R,B",
+                   help="read only this box of every photo: LEFT,TOP,RIGHT,BOTTOM in px of the photo as taken "
+                   "(upright, full size, as an image viewer shows it; right and bottom one past the box), as if the "
+                   "photo were cropped to it. Leave out a scale card, a ruler or a belt's edge: they are not grains, "
+                   "and a model may take them for some. Grains cut by the box's sides count as cut by a border" + then)
+
+
 def _auto_scale_arg(p: argparse.ArgumentParser, then: str) -> None:
     p.add_argument("--auto-scale", action=argparse.BooleanOptionalAction, default=None,
                    help="instance models, with --mm-per-px: where a photo's grains look larger than the grains the "
@@ -587,6 +605,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "tiles of this side (px, a multiple of 32), stitched into one result: memory for the network "
                    f"stays that of one tile (default: {PREDICT_TILE_PX})")
     _auto_scale_arg(p, "")
+    _roi_arg(p, "; --overlay and --masks show the box, --particles gives positions in the photo's pixels")
     p.add_argument("images", nargs="+", metavar="IMAGE",
                    help="image files (.png, .jpg, .tif, .bmp, .webp) and/or folders of them, subfolders included")
     p.set_defaults(func=cmd_predict)
@@ -635,6 +654,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", metavar="DEVICE",
                    help="where the model runs: cpu, auto (cuda when there is one), cuda, cuda:N or mps")
     _auto_scale_arg(p, " Calibrate as you will predict: the calibration records which")
+    _roi_arg(p, "; predict with the calibrated model on the same box")
     p.add_argument("--out", required=True, metavar="FILE",
                    help="the calibrated model to write (.pt; not the model itself, the reference table or an image)")
     p.add_argument("images", nargs="+", metavar="IMAGE",

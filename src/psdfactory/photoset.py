@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 import fnmatch
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +27,67 @@ STEM = "{stem}"  # the placeholder of a mask pattern: the photo's name without i
 REFERENCE_COLUMNS = ("d10_mm", "d50_mm", "d90_mm")  # psd.TARGETS, named here without importing numpy's users
 MASK_MODES = ("I;16", "I;16B", "I;16L", "I", "L")  # single-channel integer PNG modes an instance mask may have
 MAX_CSV_BYTES = 50_000_000  # a scale / reference table far larger than this is not one
+
+
+@dataclass(frozen=True)
+class Region:
+    """The part of a photo to measure (`predict --roi`): a box in px of the photo as taken (upright,
+    full size: what an image viewer shows), `left`/`top` its first column/row, `right`/`bottom` one
+    past its last. The photo is read as if cropped to it: grains cut by its sides touch the edge
+    (left out of the visible-grain definitions, as at the photo's border) and what lies outside (a
+    scale card, a belt's edge, a boot) is not looked at; positions in the particle table stay in
+    the photo's pixels."""
+
+    left: int
+    top: int
+    right: int
+    bottom: int
+
+    @classmethod
+    def parse(cls, text: str) -> Region:
+        """'LEFT,TOP,RIGHT,BOTTOM' (px, whole numbers) → the box; PsdError naming what is wrong."""
+        parts = [p.strip() for p in str(text).split(",")]
+        try:
+            left, top, right, bottom = (int(p) for p in parts)
+        except ValueError:
+            raise PsdError(f"--roi {text!r}: give the box as LEFT,TOP,RIGHT,BOTTOM in px of the photo as taken "
+                           "(four whole numbers, e.g. 0,0,2000,1500)") from None
+        if min(left, top) < 0 or right <= left or bottom <= top:
+            raise PsdError(f"--roi {text!r}: LEFT and TOP must be 0 or more, RIGHT above LEFT and BOTTOM above "
+                           "TOP (px of the photo as taken)")
+        return cls(left, top, right, bottom)
+
+    def __str__(self) -> str:
+        return f"{self.left},{self.top},{self.right},{self.bottom}"
+
+    @property
+    def size_hw(self) -> tuple[int, int]:
+        return self.bottom - self.top, self.right - self.left
+
+    def check(self, path: Path | str, size_hw: tuple[int, int]) -> None:
+        """Refuse a box that is not inside the photo of `size_hw` (upright, full size)."""
+        h, w = size_hw
+        if self.right > w or self.bottom > h:
+            raise PsdError(f"{path}: --roi {self} is not inside the photo ({w} x {h} px as taken, upright): its "
+                           "right and bottom must be at most the photo's width and height")
+
+    def need(self, path: Path | str,
+             network_hw: Callable[[int, int], tuple[int, int]]) -> Callable[[int, int], tuple[int, int]]:
+        """`read_photo`'s `need` for the whole photo, from `network_hw(h, w)`: the size the box is
+        read at (checked against the photo first), scaled to the photo."""
+        def whole(h: int, w: int) -> tuple[int, int]:
+            self.check(path, (h, w))
+            (rh, rw), (nh, nw) = self.size_hw, network_hw(*self.size_hw)
+            return math.ceil(nh * h / rh), math.ceil(nw * w / rw)
+        return whole
+
+    def crop(self, image, size_hw: tuple[int, int]):
+        """The box of a photo decoded as `image` (an (H, W, ...) array; its full size `size_hw`, decoded
+        reduced or not)."""
+        ky, kx = image.shape[0] / size_hw[0], image.shape[1] / size_hw[1]
+        r0, c0 = int(round(self.top * ky)), int(round(self.left * kx))
+        r1, c1 = max(r0 + 1, int(round(self.bottom * ky))), max(c0 + 1, int(round(self.right * kx)))
+        return image[r0:r1, c0:c1].copy()
 
 
 @dataclass(frozen=True)

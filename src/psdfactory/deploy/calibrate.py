@@ -17,6 +17,7 @@ import numpy as np
 from .. import PsdError, __version__
 from ..io import same_file
 from ..learn import calibration as cal
+from ..photoset import Region
 from ..psd import NAMES, TARGETS, check_grain_weighting
 from .predict import describe_model, image_files, load_predictor, predict_one, reading
 
@@ -154,12 +155,13 @@ def references_reading(est, size_definition: str | None, weighting: str | None) 
 
 def calibrate(model_path: Path, reference: Path, inputs: list[str], out: Path, mm_per_px: float | None = None,
               size_definition: str | None = None, device: str = "cpu", auto_scale: bool | None = None,
-              weighting: str | None = None) -> dict:
+              weighting: str | None = None, roi: Region | None = None) -> dict:
     """Predict the reference images with the model (uncalibrated: a calibrated model's own
     correction is left out and replaced), fit the correction (`learn.calibration`) and write the
     model with it in its meta to `out` (the same weights). `size_definition`, `weighting`: what the
     references are of (`references_reading`). `auto_scale`: read them as predict --auto-scale /
-    --no-auto-scale does (None: the model's default); the block records which.
+    --no-auto-scale does (None: the model's default); the block records which. `roi`: the part of
+    every reference image to read (predict --roi); the block records it.
     → the calibration block."""
     from ..learn.runtime import load_checkpoint, meta_problems, write_torch
 
@@ -184,7 +186,7 @@ def calibrate(model_path: Path, reference: Path, inputs: list[str], out: Path, m
         logger.info(f"the references are of the {what['size_definition']} size, {what['weighting']}-weighted, which "
                     f"this {est.meta['arch']} model does not read: the correction maps its {basis['size_definition']} "
                     f"reading, {basis['weighting']}-weighted, to them (docs/calibration.md)")
-    rows = [predict_one(est, f, mm_per_px, what=basis) for f in files]
+    rows = [predict_one(est, f, mm_per_px, what=basis, roi=roi) for f in files]
     failed = [r["error"] for r in rows if r["error"]]
     if failed:
         raise PsdError(f"{len(failed)} of {len(rows)} reference images failed to predict, so the model cannot be "
@@ -197,6 +199,8 @@ def calibrate(model_path: Path, reference: Path, inputs: list[str], out: Path, m
         ref["file"] = str(f)
     if est.finds_grains and mm_per_px is not None:  # how its photos were read (without a scale: at the model's
         block["auto_scale"] = bool(est.auto_scale)  # scale either way); predict warns where it reads them otherwise
+    if roi is not None:
+        block["roi"] = str(roi)
     for line in cal.calibration_warnings(block):
         logger.warning(line)
     ckpt = load_checkpoint(model_path)

@@ -24,7 +24,7 @@ from ..learn.calibration import apply_calibration, calibration_note, source_read
 from ..learn.data import to_input
 from ..learn.estimator import GRAIN_PROBE_KEY, GRAIN_SIZE_KEYS, Estimator, Reading, reading_of
 from ..learn.instances.net import GRID_PX
-from ..photoset import IMAGE_SUFFIXES
+from ..photoset import IMAGE_SUFFIXES, Region
 from ..psd import SOLID_DEFINITIONS, TARGETS
 
 logger = logging.getLogger(__name__)
@@ -491,20 +491,27 @@ def corrected_reading(est: Estimator, found: Reading, what: dict, where: str) ->
 
 
 def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: GrainOutputs | None = None,
-                what: dict | None = None, tile: int | None = DEFAULT_TILE_PX) -> dict:
+                what: dict | None = None, tile: int | None = DEFAULT_TILE_PX, roi: Region | None = None) -> dict:
     """One image → its row; a bad image gives a row whose `error` names the file and the reason.
     Without `mm_per_px` only an image of the training images' size is taken (at their scale);
     any other is refused before it is decoded. An image larger than `tile` px at the network's
     scale is run tile by tile (`image_outputs`), at a coarser scale where its grains look larger than
     the training grains (`read_at_scale`). With `grains` (an estimator that finds grains),
-    its overlay, mask and particle rows are written. `what`: the reading (``reading``)."""
+    its overlay, mask and particle rows are written. `what`: the reading (``reading``). `roi`: the
+    part of the photo to read (`Region`), as if the photo were cropped to it."""
     meta = est.meta
     what = what or reading(meta, None)
     try:
-        image, size_hw = read_photo(path, need=lambda h, w: network_size(path, h, w, meta, mm_per_px))
+        def network_hw(h: int, w: int) -> tuple[int, int]:
+            return network_size(path, h, w, meta, mm_per_px)
+
+        image, size_hw = read_photo(path, need=network_hw if roi is None else roi.need(path, network_hw))
+        origin = (0, 0)
+        if roi is not None:
+            image, size_hw, origin = roi.crop(image, size_hw), roi.size_hw, (roi.top, roi.left)
         found, _ = read_at_scale(est, image, size_hw, mm_per_px, tile, str(path))
         if grains is not None:
-            grains.write(path, image, size_hw, found.grains)
+            grains.write(path, image, size_hw, found.grains, origin)
         error, few = grain_count_problem(str(path), found.grains)
         if error:
             raise PsdError(error)
@@ -532,7 +539,8 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
 
 def predict_rows(est: Estimator, files: list[Path], mm_per_px: float | None = None,
                  done: dict[str, dict] | None = None, grains: GrainOutputs | None = None,
-                 what: dict | None = None, tile: int | None = DEFAULT_TILE_PX) -> Iterator[tuple[dict, bool]]:
+                 what: dict | None = None, tile: int | None = DEFAULT_TILE_PX,
+                 roi: Region | None = None) -> Iterator[tuple[dict, bool]]:
     """(row, predicted now) per file, in order, one image in memory at a time; the rows of
     `done` (keyed by image_key; of the same reading) are given back as they are, not predicted again."""
     done = done or {}
@@ -540,7 +548,8 @@ def predict_rows(est: Estimator, files: list[Path], mm_per_px: float | None = No
         grains.name_outputs(files)
     for f in files:
         old = done.get(image_key(f))
-        yield ({**old, "image": str(f)}, False) if old else (predict_one(est, f, mm_per_px, grains, what, tile), True)
+        yield ({**old, "image": str(f)}, False) if old else (predict_one(est, f, mm_per_px, grains, what, tile, roi),
+                                                                 True)
 
 
 def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, device: str, outputs: dict | None = None,
@@ -596,14 +605,15 @@ def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None =
                   overlay_dir: Path | None = None, masks_dir: Path | None = None,
                   particles_out: Path | None = None, size_definition: str | None = None,
                   weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX,
-                  runtime: str = "torch", auto_scale: bool | None = None) -> list[dict]:
+                  runtime: str = "torch", auto_scale: bool | None = None, roi: Region | None = None) -> list[dict]:
     """One row per image. An instance model can also write each image's overlay and instance
-    mask and a table of every measured particle (`GrainOutputs`)."""
+    mask and a table of every measured particle (`GrainOutputs`). `roi`: the part of every image
+    to read (`Region`)."""
     outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
     est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition, weighting, tile,
                                    runtime, auto_scale)
     grains = GrainOutputs(est.meta, **outputs) if est.finds_grains else None
-    rows = [row for row, _ in predict_rows(est, files, mm_per_px, grains=grains, what=what, tile=tile)]
+    rows = [row for row, _ in predict_rows(est, files, mm_per_px, grains=grains, what=what, tile=tile, roi=roi)]
     if grains is not None:
         grains.finish()
     return rows
@@ -668,11 +678,11 @@ def reading_path(out: Path) -> Path:
 
 
 def read_settings(model_path: Path, est: Estimator, mm_per_px: float | None, tile: int | None,
-                  runtime: str) -> dict:
+                  runtime: str, roi: Region | None = None) -> dict:
     """What a row's d-values depend on beyond the image and its size definition and weighting
     (those are in the row): the model file (path, size and modification time: a model trained
-    again in place is another), the photos' scale, the automatic scale as it applies, the tile
-    and the runtime."""
+    again in place is another), the photos' scale, the automatic scale as it applies, the tile,
+    the runtime and the part of the photos read."""
     try:
         st = os.stat(model_path)
         size, mtime = st.st_size, st.st_mtime_ns
@@ -680,7 +690,7 @@ def read_settings(model_path: Path, est: Estimator, mm_per_px: float | None, til
         size = mtime = None
     return {"model": os.path.abspath(model_path), "model_bytes": size, "model_mtime_ns": mtime,
             "mm_per_px": mm_per_px, "auto_scale": bool(est.auto_scale and est.finds_grains and mm_per_px is not None),
-            "tile": tile, "runtime": runtime}
+            "tile": tile, "runtime": runtime, "roi": None if roi is None else str(roi)}
 
 
 def resumable(out: Path, settings: dict) -> str | None:
@@ -809,29 +819,31 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
                        overlay_dir: Path | None = None, masks_dir: Path | None = None,
                        particles_out: Path | None = None, size_definition: str | None = None,
                        weighting: str | None = None, tile: int | None = DEFAULT_TILE_PX,
-                       runtime: str = "torch", auto_scale: bool | None = None) -> tuple[int, int]:
+                       runtime: str = "torch", auto_scale: bool | None = None,
+                       roi: Region | None = None) -> tuple[int, int]:
     """`psdfactory predict`: each image read, predicted and written (to `emit` and to `out`'s
     partial file) before the next is read, so memory stays flat and an interrupted run keeps
     what it did; `out` appears only when every image is done. → (images, failed). An instance
-    model can also write overlays, masks and the particle table (`GrainOutputs`)."""
+    model can also write overlays, masks and the particle table (`GrainOutputs`). `roi`: the part
+    of every image to read (`Region`)."""
     outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
     lock = OutLock(out) if out is not None else None
     try:
         return _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_stream, outputs,
-                       size_definition, weighting, tile, runtime, auto_scale)
+                       size_definition, weighting, tile, runtime, auto_scale, roi)
     finally:
         if lock is not None:
             lock.release()
 
 
 def _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_stream, outputs,
-            size_definition, weighting, tile, runtime, auto_scale) -> tuple[int, int]:
+            size_definition, weighting, tile, runtime, auto_scale, roi) -> tuple[int, int]:
     est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition, weighting, tile,
                                    runtime, auto_scale)
     done = done_rows(out) if (resume and out is not None) else {}
     done = {k: r for k, r in done.items() if all(r.get(c) == what[c] for c in what)}  # rows of another reading: again
     if out is not None:
-        settings = read_settings(Path(model_path), est, mm_per_px, tile, runtime)
+        settings = read_settings(Path(model_path), est, mm_per_px, tile, runtime, roi)
         if done and (why := resumable(Path(out), settings)) is not None:
             logger.warning(f"--resume: the rows already in {out} are not kept: {why}; every image is predicted again")
             done = {}
@@ -851,7 +863,11 @@ def _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_s
     progress = Progress(len(files), progress_stream, enabled=logger.isEnabledFor(logging.INFO))  # not with -q
     failed = 0
     try:
-        for row, predicted in predict_rows(est, files, mm_per_px, done, grains, what, tile):
+        if roi is not None:
+            logger.info(f"reading the box {roi} (left, top, right, bottom in px of each photo as taken) of every "
+                        "image: grains cut by its sides are left out of the visible-grain definitions, as at a "
+                        "photo's border")
+        for row, predicted in predict_rows(est, files, mm_per_px, done, grains, what, tile, roi):
             failed += bool(row["error"])
             if writer is not None:
                 writer.write(row)
@@ -879,15 +895,16 @@ PARTICLE_COLUMNS = ["image", "id", "centroid_row_px", "centroid_col_px", "area_m
                     "mask_mm_per_px"]
 
 
-def particle_rows(path: Path | str, res, size_hw: tuple[int, int]) -> list[dict]:
+def particle_rows(path: Path | str, res, size_hw: tuple[int, int], origin: tuple[int, int] = (0, 0)) -> list[dict]:
     """The particle table's rows of one image from what the estimator found in it (`res`, as
     `learn.instances.estimator.InstanceResult`): every grain of its mask, measured at the
     network's scale (`res.measurements`), its centroid given in the pixels of the photo of
-    `size_hw` (upright, full size); `sieve_size_mm` is the model's own per-grain estimate."""
+    `size_hw` (upright, full size; a part of a photo: `size_hw` the part's and `origin` its first
+    row and column in the photo); `sieve_size_mm` is the model's own per-grain estimate."""
     m = res.measurements
     (h, w), (H, W) = res.mask.shape, size_hw
-    rows = (m.centroid_row_px + 0.5) * (H / h) - 0.5
-    cols = (m.centroid_col_px + 0.5) * (W / w) - 0.5
+    rows = (m.centroid_row_px + 0.5) * (H / h) - 0.5 + origin[0]
+    cols = (m.centroid_col_px + 0.5) * (W / w) - 0.5 + origin[1]
     mm = float(m.mm_per_px)
 
     def r(v: float, digits: int = 4) -> float:
@@ -969,9 +986,12 @@ class GrainOutputs:
             taken.add(name)
             self.names[f] = name
 
-    def write(self, path: Path, image: np.ndarray, size_hw: tuple[int, int], res) -> None:
+    def write(self, path: Path, image: np.ndarray, size_hw: tuple[int, int], res,
+              origin: tuple[int, int] = (0, 0)) -> None:
         """The files of one image from what the estimator found in it (`res`: mask, measurements,
-        sizes_mm and raw d-values, as `learn.instances.estimator.InstanceResult`)."""
+        sizes_mm and raw d-values, as `learn.instances.estimator.InstanceResult`). A part of a photo
+        (`predict --roi`): `image` and `size_hw` are the part's, its overlay and mask are of the part,
+        the particle table's positions in the photo's pixels (`origin`: the part's first row and column)."""
         from ..io import write_png
         from ..learn.instances.draw import draw_overlay, resize_mask
 
@@ -986,7 +1006,7 @@ class GrainOutputs:
             write_png(self.overlay_dir / f"{self.names.get(path, path.stem)}.png", over, compress_level=1)
             self.written["overlays"] += 1
         if self.writer is not None:
-            self.writer.writerows(particle_rows(path, res, size_hw))
+            self.writer.writerows(particle_rows(path, res, size_hw, origin))
             self.file.flush()
             self.n_particles += len(m)
         raw = ", ".join(f"{v:.3f}" for v in res.raw)

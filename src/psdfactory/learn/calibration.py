@@ -34,6 +34,7 @@ import math
 import numpy as np
 
 from .. import PsdError
+from ..photoset import Region
 from ..psd import GRAIN_WEIGHTINGS, NAMES, SIZE_DEFINITIONS, TARGETS
 
 MIN_REFERENCES = 3
@@ -332,6 +333,11 @@ def calibration_problems(block: object) -> list[str]:
     bad = [k for k in ("loo", "uncalibrated") if not _errors_ok(block.get(k))]
     if bad:
         problems.append(f"calibration.{' and calibration.'.join(bad)} must give mape_pct and mae_mm per target")
+    if block.get("roi") is not None:
+        try:
+            Region.parse(block["roi"])
+        except PsdError as e:
+            problems.append(f"calibration.roi (the box of its photos it read): {e}")
     mm = block.get("mm_per_px")
     if mm is not None and not (_num(mm) and mm > 0):
         problems.append("calibration.mm_per_px must be a positive number or null")
@@ -351,6 +357,8 @@ def calibration_note(meta: dict, what: dict) -> str | None:
     loo = ", ".join(f"{n} {block['loo'][n]['mape_pct']:.1f} %" for n in NAMES)
     raw = ", ".join(f"{n} {block['uncalibrated'][n]['mape_pct']:.1f} %" for n in NAMES)
     scale = "" if block.get("mm_per_px") is None else f" at {block['mm_per_px']:g} mm/px"
+    if block.get("roi") is not None:
+        scale += f", the box {block['roi']} of each photo (predict --roi)"
     return (f"calibrated on {block['n']} references ({block['method']}, {block['size_definition']} size, "
             f"{block['weighting']}-weighted{basis_phrase(block)}{scale}, {block['date']}): LOO error (mean abs %) "
             f"{loo}; uncalibrated {raw}")
