@@ -369,7 +369,7 @@ def test_calibrate_writes_the_model_with_its_calibration_and_predict_applies_it(
     np.testing.assert_allclose([r["d50_mm"] for r in from_onnx], got[:, 1], rtol=1e-4)
 
 
-def test_an_affine_calibration_below_ten_and_the_commands_refusals(model, plugin, tmp_path, capsys):
+def test_an_affine_calibration_below_ten_and_the_commands_refusals(model, plugin, tmp_path, capsys, caplog):
     from psdfactory.cli import main
     from psdfactory.deploy.calibrate import calibrate
     from psdfactory.deploy.predict import predict_files
@@ -402,6 +402,12 @@ def test_an_affine_calibration_below_ten_and_the_commands_refusals(model, plugin
     reading_of_block = {"size_definition": boxed["size_definition"], "weighting": boxed["weighting"]}
     assert f"the box 0,0,{w},{h} of each photo" in cal.calibration_note({"calibration": boxed}, reading_of_block)
     assert any("calibration.roi" in p for p in cal.calibration_problems({**boxed, "roi": "0,0,-1,5"}))
+    with caplog.at_level(logging.WARNING, logger="psdfactory"):
+        predict_files(tmp_path / "boxed.pt", images, roi=Region(0, 0, w, h))
+        assert not [r for r in caplog.records if "calibrated on" in r.message]
+        predict_files(tmp_path / "boxed.pt", images)  # whole photos: told that it was calibrated on a box
+    said = [r.message for r in caplog.records if "calibrated on the box" in r.message]
+    assert len(said) == 1 and "reads whole photos now" in said[0] and f"--roi 0,0,{w},{h}" in said[0]
     with pytest.raises(PsdError, match=f"{w - 1} x {h} px is not the model's field of view"):
         calibrate(model_pt, ref, images, tmp_path / "small.pt", mm_per_px=None, roi=Region(0, 0, w - 1, h))
 

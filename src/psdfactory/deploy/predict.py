@@ -554,13 +554,15 @@ def predict_rows(est: Estimator, files: list[Path], mm_per_px: float | None = No
 
 def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, device: str, outputs: dict | None = None,
                 size_definition: str | None = None, weighting: str | None = None,
-                tile: int | None = DEFAULT_TILE_PX, runtime: str = "torch", auto_scale: bool | None = None):
+                tile: int | None = DEFAULT_TILE_PX, runtime: str = "torch", auto_scale: bool | None = None,
+                roi: Region | None = None):
     """The model (its runner and meta, described in the log), the image files to predict and what
     the d-values will be of (``reading``). `outputs`: an instance model's --overlay / --masks /
     --particles (refused for the others); `tile`: checked against the model's margin; `runtime`:
     the engine for a model.pt (`fastpath.RUNTIMES`); `auto_scale`: photos whose grains look larger
     than the training grains read at a coarser scale (`choose_scale`), or not; None: as the model's
-    recipe says (`Estimator.auto_scale`, from its meta)."""
+    recipe says (`Estimator.auto_scale`, from its meta); `roi`: the box of each photo read, checked
+    against the one a calibrated model's references were read in."""
     est = load_predictor(model_path, device, runtime)
     asked = auto_scale is not None
     if asked:
@@ -598,6 +600,13 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
                            f"scale, and reads them {'with' if est.auto_scale else 'without'} it now: where that moves "
                            f"a photo's scale the correction does not fit its reading; predict with "
                            f"{'--auto-scale' if fitted else '--no-auto-scale'}, as it was calibrated")
+        boxed = meta["calibration"].get("roi")
+        if boxed != (None if roi is None else str(roi)):
+            then = f"the box {boxed} of its photos" if boxed else "whole photos"
+            now = f"the box {roi}" if roi is not None else "whole photos"
+            logger.warning(f"this model was calibrated on {then} and reads {now} now: where that changes what is in "
+                           "view the correction may not fit; predict as it was calibrated "
+                           f"({f'--roi {boxed}' if boxed else 'without --roi'}) where the photos are framed alike")
     return est, files, what
 
 
@@ -611,7 +620,7 @@ def predict_files(model_path: Path, inputs: list[str], mm_per_px: float | None =
     to read (`Region`)."""
     outputs = {"overlay_dir": overlay_dir, "masks_dir": masks_dir, "particles_out": particles_out}
     est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition, weighting, tile,
-                                   runtime, auto_scale)
+                                   runtime, auto_scale, roi)
     grains = GrainOutputs(est.meta, **outputs) if est.finds_grains else None
     rows = [row for row, _ in predict_rows(est, files, mm_per_px, grains=grains, what=what, tile=tile, roi=roi)]
     if grains is not None:
@@ -839,7 +848,7 @@ def stream_predictions(model_path: Path, inputs: list[str], out: Path | None = N
 def _stream(model_path, inputs, out, mm_per_px, device, resume, emit, progress_stream, outputs,
             size_definition, weighting, tile, runtime, auto_scale, roi) -> tuple[int, int]:
     est, files, what = open_inputs(model_path, inputs, mm_per_px, device, outputs, size_definition, weighting, tile,
-                                   runtime, auto_scale)
+                                   runtime, auto_scale, roi)
     done = done_rows(out) if (resume and out is not None) else {}
     done = {k: r for k, r in done.items() if all(r.get(c) == what[c] for c in what)}  # rows of another reading: again
     if out is not None:
