@@ -528,6 +528,15 @@ def test_exif_orientation_is_honoured(synthetic_model, tmp_path):
         pytest.approx(159 - 39.5, abs=1)
     assert mask[60, 120] > 0 and mask[60, 40] == 0
     assert float(row["feret_min_mm"]) == pytest.approx(40 * NET_MM, abs=1) and float(row["feret_max_mm"]) > 60 * NET_MM
+    # a box is in px of the upright photo: its right half holds the grain, at the same place in the table
+    assert main(["predict", "--model", "m.pt", "--mm-per-px", str(NET_MM), "--roi", "80,0,160,240", "--masks",
+                 str(tmp_path / "boxed"), "--particles", str(tmp_path / "b.csv"), str(tmp_path / "phone.jpg")]) == 0
+    assert synthetic_model[-1] == grid_shape(240, 80)
+    with Image.open(tmp_path / "boxed" / "phone.png") as im:
+        assert im.size == (80, 240)
+    (boxed,) = read_csv(tmp_path / "b.csv")
+    assert float(boxed["centroid_row_px"]) == pytest.approx(float(row["centroid_row_px"]), abs=0.5)
+    assert float(boxed["centroid_col_px"]) == pytest.approx(float(row["centroid_col_px"]), abs=0.5)
 
 
 def test_a_large_photo_runs_in_tiles_through_predict(synthetic_model, tmp_path, caplog):
