@@ -406,9 +406,13 @@ def test_an_affine_calibration_below_ten_and_the_commands_refusals(model, plugin
         predict_files(tmp_path / "boxed.pt", images, roi=Region(0, 0, w, h))
         assert not [r for r in caplog.records if "calibrated on" in r.message]
         predict_files(tmp_path / "boxed.pt", images)  # whole photos: told that it was calibrated on a box
+        predict_files(out, images, roi=Region(0, 0, w, h))  # and the other way round
     said = [r.message for r in caplog.records if "calibrated on the box" in r.message]
     assert len(said) == 1 and "reads whole photos now" in said[0] and f"--roi 0,0,{w},{h}" in said[0]
-    with pytest.raises(PsdError, match=f"{w - 1} x {h} px is not the model's field of view"):
+    said = [r.message for r in caplog.records if "calibrated on whole photos" in r.message]
+    assert len(said) == 1 and f"reads the box 0,0,{w},{h} now" in said[0] and "without --roi" in said[0]
+    with pytest.raises(PsdError, match=rf"\(its box --roi 0,0,{w - 1},{h}\): {w - 1} x {h} px is not the model's "
+                                       "field of view"):
         calibrate(model_pt, ref, images, tmp_path / "small.pt", mm_per_px=None, roi=Region(0, 0, w - 1, h))
 
     # references of another weighting than the model reads (a sieve analysis counts mass): its reading corrected to

@@ -308,13 +308,17 @@ def test_a_box_of_the_photo_reads_as_the_photo_cropped_to_it(synthetic_model, tm
 
 @pytest.mark.parametrize(("text", "says"), [("10,10,5,20", "RIGHT above LEFT"), ("0,0,100", "four whole numbers"),
                                             ("-1,0,10,10", "0 or more"), ("a,b,c,d", "four whole numbers"),
-                                            ("0,0,1.5,10", "four whole numbers"), ("0,20,10,20", "BOTTOM above")])
+                                            ("0,0,1.5,10", "four whole numbers"), ("0,20,10,20", "BOTTOM above"),
+                                            ("1_0,0,20,20", "four whole numbers")])
 def test_a_box_that_is_not_one_is_refused_in_one_line(text, says, tmp_path, capsys):
     from psdfactory.cli import main
     from psdfactory.photoset import Region
 
     with pytest.raises(PsdError, match=says):
         Region.parse(text)
+    if says not in ("four whole numbers",):  # a box made in code is checked as one parsed
+        with pytest.raises(PsdError, match=says):
+            Region(*(int(p) for p in text.split(",")))
     (tmp_path / "a.png").write_bytes(b"not read")
     with pytest.raises(SystemExit) as e:
         main(["predict", "--model", "m.pt", f"--roi={text}", str(tmp_path / "a.png")])
@@ -329,9 +333,15 @@ def test_a_box_is_cut_from_a_photo_decoded_reduced():
 
     full = np.arange(400 * 600).reshape(400, 600)
     box = Region(60, 100, 300, 260)
-    assert (box.crop(full, (400, 600)) == full[100:260, 60:300]).all()
+    part, frame = box.crop(full, (400, 600))
+    assert (part == full[100:260, 60:300]).all() and frame == (100, 60, 160, 240)
     half = full[::2, ::2]
-    assert (box.crop(half, (400, 600)) == half[50:130, 30:150]).all()
+    part, frame = box.crop(half, (400, 600))
+    assert (part == half[50:130, 30:150]).all() and frame == (100, 60, 160, 240)
+    # a box off the decoded grid: the part is the box rounded to decoded pixels, and says where it lies
+    fifth = full[::5, ::5]
+    part, frame = Region(3, 2, 203, 183).crop(fifth, (400, 600))
+    assert (part == fifth[0:37, 1:41]).all() and frame == (0, 5, 185, 200)
     assert box.size_hw == (160, 240)
     with pytest.raises(PsdError, match="not inside the photo"):
         box.need("p.jpg", lambda h, w: (h, w))(200, 600)

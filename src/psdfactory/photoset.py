@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 import fnmatch
 import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,19 +44,19 @@ class Region:
     right: int
     bottom: int
 
+    def __post_init__(self) -> None:
+        if min(self.left, self.top) < 0 or self.right <= self.left or self.bottom <= self.top:
+            raise PsdError(f"--roi {self}: LEFT and TOP must be 0 or more, RIGHT above LEFT and BOTTOM above "
+                           "TOP (px of the photo as taken)")
+
     @classmethod
     def parse(cls, text: str) -> Region:
         """'LEFT,TOP,RIGHT,BOTTOM' (px, whole numbers) → the box; PsdError naming what is wrong."""
         parts = [p.strip() for p in str(text).split(",")]
-        try:
-            left, top, right, bottom = (int(p) for p in parts)
-        except ValueError:
+        if len(parts) != 4 or not all(re.fullmatch(r"-?[0-9]+", p) for p in parts):
             raise PsdError(f"--roi {text!r}: give the box as LEFT,TOP,RIGHT,BOTTOM in px of the photo as taken "
-                           "(four whole numbers, e.g. 0,0,2000,1500)") from None
-        if min(left, top) < 0 or right <= left or bottom <= top:
-            raise PsdError(f"--roi {text!r}: LEFT and TOP must be 0 or more, RIGHT above LEFT and BOTTOM above "
-                           "TOP (px of the photo as taken)")
-        return cls(left, top, right, bottom)
+                           "(four whole numbers, e.g. 0,0,2000,1500)")
+        return cls(*(int(p) for p in parts))
 
     def __str__(self) -> str:
         return f"{self.left},{self.top},{self.right},{self.bottom}"
@@ -83,11 +84,12 @@ class Region:
 
     def crop(self, image, size_hw: tuple[int, int]):
         """The box of a photo decoded as `image` (an (H, W, ...) array; its full size `size_hw`, decoded
-        reduced or not)."""
+        reduced or not), and where that part lies in the photo: (top, left, height, width) in px of the
+        photo at full size — the box, rounded to the decoded pixels where the photo was decoded reduced."""
         ky, kx = image.shape[0] / size_hw[0], image.shape[1] / size_hw[1]
         r0, c0 = int(round(self.top * ky)), int(round(self.left * kx))
         r1, c1 = max(r0 + 1, int(round(self.bottom * ky))), max(c0 + 1, int(round(self.right * kx)))
-        return image[r0:r1, c0:c1].copy()
+        return image[r0:r1, c0:c1].copy(), (r0 / ky, c0 / kx, (r1 - r0) / ky, (c1 - c0) / kx)
 
 
 @dataclass(frozen=True)

@@ -503,15 +503,15 @@ def predict_one(est: Estimator, path: Path, mm_per_px: float | None, grains: Gra
     what = what or reading(meta, None)
     try:
         def network_hw(h: int, w: int) -> tuple[int, int]:
-            return network_size(path, h, w, meta, mm_per_px)
+            return network_size(path if roi is None else f"{path} (its box --roi {roi})", h, w, meta, mm_per_px)
 
         image, size_hw = read_photo(path, need=network_hw if roi is None else roi.need(path, network_hw))
-        origin = (0, 0)
+        frame = (0.0, 0.0, *map(float, size_hw))  # where the image read lies in the photo (particle_rows)
         if roi is not None:
-            image, size_hw, origin = roi.crop(image, size_hw), roi.size_hw, (roi.top, roi.left)
+            (image, frame), size_hw = roi.crop(image, size_hw), roi.size_hw
         found, _ = read_at_scale(est, image, size_hw, mm_per_px, tile, str(path))
         if grains is not None:
-            grains.write(path, image, size_hw, found.grains, origin)
+            grains.write(path, image, size_hw, found.grains, frame)
         error, few = grain_count_problem(str(path), found.grains)
         if error:
             raise PsdError(error)
@@ -600,8 +600,8 @@ def open_inputs(model_path: Path, inputs: list[str], mm_per_px: float | None, de
                            f"scale, and reads them {'with' if est.auto_scale else 'without'} it now: where that moves "
                            f"a photo's scale the correction does not fit its reading; predict with "
                            f"{'--auto-scale' if fitted else '--no-auto-scale'}, as it was calibrated")
-        boxed = meta["calibration"].get("roi")
-        if boxed != (None if roi is None else str(roi)):
+        boxed = meta["calibration"].get("roi")  # checked by calibration_problems when the model was loaded
+        if (None if boxed is None else Region.parse(boxed)) != roi:
             then = f"the box {boxed} of its photos" if boxed else "whole photos"
             now = f"the box {roi}" if roi is not None else "whole photos"
             logger.warning(f"this model was calibrated on {then} and reads {now} now: where that changes what is in "
@@ -904,16 +904,17 @@ PARTICLE_COLUMNS = ["image", "id", "centroid_row_px", "centroid_col_px", "area_m
                     "mask_mm_per_px"]
 
 
-def particle_rows(path: Path | str, res, size_hw: tuple[int, int], origin: tuple[int, int] = (0, 0)) -> list[dict]:
+def particle_rows(path: Path | str, res, frame: tuple[float, float, float, float]) -> list[dict]:
     """The particle table's rows of one image from what the estimator found in it (`res`, as
     `learn.instances.estimator.InstanceResult`): every grain of its mask, measured at the
-    network's scale (`res.measurements`), its centroid given in the pixels of the photo of
-    `size_hw` (upright, full size; a part of a photo: `size_hw` the part's and `origin` its first
-    row and column in the photo); `sieve_size_mm` is the model's own per-grain estimate."""
+    network's scale (`res.measurements`), its centroid given in the pixels of the photo (upright,
+    full size), where the image read covers `frame` = (top, left, height, width) (the whole photo:
+    (0, 0, its height, its width); a part of it: `Region.crop`'s); `sieve_size_mm` is the model's
+    own per-grain estimate."""
     m = res.measurements
-    (h, w), (H, W) = res.mask.shape, size_hw
-    rows = (m.centroid_row_px + 0.5) * (H / h) - 0.5 + origin[0]
-    cols = (m.centroid_col_px + 0.5) * (W / w) - 0.5 + origin[1]
+    (h, w), (top, left, H, W) = res.mask.shape, frame
+    rows = (m.centroid_row_px + 0.5) * (H / h) - 0.5 + top
+    cols = (m.centroid_col_px + 0.5) * (W / w) - 0.5 + left
     mm = float(m.mm_per_px)
 
     def r(v: float, digits: int = 4) -> float:
@@ -996,11 +997,12 @@ class GrainOutputs:
             self.names[f] = name
 
     def write(self, path: Path, image: np.ndarray, size_hw: tuple[int, int], res,
-              origin: tuple[int, int] = (0, 0)) -> None:
+              frame: tuple[float, float, float, float] | None = None) -> None:
         """The files of one image from what the estimator found in it (`res`: mask, measurements,
         sizes_mm and raw d-values, as `learn.instances.estimator.InstanceResult`). A part of a photo
         (`predict --roi`): `image` and `size_hw` are the part's, its overlay and mask are of the part,
-        the particle table's positions in the photo's pixels (`origin`: the part's first row and column)."""
+        the particle table's positions in the photo's pixels (`frame`: where the part lies in the photo,
+        as `particle_rows` takes it; None: the image is the whole photo)."""
         from ..io import write_png
         from ..learn.instances.draw import draw_overlay, resize_mask
 
@@ -1015,7 +1017,7 @@ class GrainOutputs:
             write_png(self.overlay_dir / f"{self.names.get(path, path.stem)}.png", over, compress_level=1)
             self.written["overlays"] += 1
         if self.writer is not None:
-            self.writer.writerows(particle_rows(path, res, size_hw, origin))
+            self.writer.writerows(particle_rows(path, res, frame or (0.0, 0.0, *map(float, size_hw))))
             self.file.flush()
             self.n_particles += len(m)
         raw = ", ".join(f"{v:.3f}" for v in res.raw)
