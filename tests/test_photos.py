@@ -320,11 +320,12 @@ def test_a_box_that_is_not_one_is_refused_in_one_line(text, says, tmp_path, caps
         with pytest.raises(PsdError, match=says):
             Region(*(int(p) for p in text.split(",")))
     (tmp_path / "a.png").write_bytes(b"not read")
-    with pytest.raises(SystemExit) as e:
-        main(["predict", "--model", "m.pt", f"--roi={text}", str(tmp_path / "a.png")])
-    assert e.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--roi" in err[0] and says in err[0], err
+    for command in (["predict"], ["calibrate", "--reference", "ref.csv", "--out", "c.pt"]):
+        with pytest.raises(SystemExit) as e:
+            main([*command, "--model", "m.pt", f"--roi={text}", str(tmp_path / "a.png")])
+        assert e.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--roi" in err[0] and says in err[0], (command, err)
 
 
 def test_a_box_is_cut_from_a_photo_decoded_reduced():
@@ -424,7 +425,7 @@ def test_resume_predicts_again_when_the_particle_table_is_of_an_older_version(sy
 
 
 def test_resume_keeps_no_row_read_at_another_scale_or_by_another_model(synthetic_model, tmp_path, caplog):
-    """A --resume after the photos' scale, the model file or the automatic scale changed predicts
+    """A --resume after the photos' scale, the model file, the automatic scale or the box changed predicts
     every image again (the rows do not say how they were read; `.<out>.reading.json` does), and
     keeps the rows of the same reading."""
     from psdfactory.cli import main
@@ -452,6 +453,10 @@ def test_resume_keeps_no_row_read_at_another_scale_or_by_another_model(synthetic
     assert run("--mm-per-px", "0.4", "--no-auto-scale", "--resume") == 0  # the fixture's model has no auto scale
     assert run("--mm-per-px", "0.4", "--auto-scale", "--resume") > 0
     assert "auto_scale False → True" in caplog.text
+    assert run("--mm-per-px", "0.4", "--auto-scale", "--roi", "0,0,200,256", "--resume") > 0  # a box of each
+    assert "roi None → '0,0,200,256'" in caplog.text
+    assert run("--mm-per-px", "0.4", "--auto-scale", "--roi", "0,0,200,256", "--resume") == 0
+    assert run("--mm-per-px", "0.4", "--auto-scale", "--resume") > 0  # the box left out again
     os.utime(tmp_path / "m.pt", ns=(1, 1))  # the model file replaced (trained again in place)
     assert run("--mm-per-px", "0.4", "--auto-scale", "--resume") > 0 and "model_mtime_ns" in caplog.text
     reading_path(out).unlink()  # an older psdfactory's rows: how they were read is unknown
