@@ -44,19 +44,28 @@ class Region:
     right: int
     bottom: int
 
+    ORDER = "LEFT and TOP must be 0 or more, RIGHT above LEFT and BOTTOM above TOP (px of the photo as taken)"
+
+    @staticmethod
+    def out_of_order(left: int, top: int, right: int, bottom: int) -> bool:
+        return min(left, top) < 0 or right <= left or bottom <= top
+
     def __post_init__(self) -> None:
-        if min(self.left, self.top) < 0 or self.right <= self.left or self.bottom <= self.top:
-            raise PsdError(f"--roi {self}: LEFT and TOP must be 0 or more, RIGHT above LEFT and BOTTOM above "
-                           "TOP (px of the photo as taken)")
+        if self.out_of_order(self.left, self.top, self.right, self.bottom):
+            raise PsdError(f"--roi {self}: {self.ORDER}")
 
     @classmethod
     def parse(cls, text: str) -> Region:
-        """'LEFT,TOP,RIGHT,BOTTOM' (px, whole numbers) → the box; PsdError naming what is wrong."""
+        """'LEFT,TOP,RIGHT,BOTTOM' (px, whole numbers) → the box; PsdError naming what is wrong, after
+        '--roi <text as given>: '."""
         parts = [p.strip() for p in str(text).split(",")]
         if len(parts) != 4 or not all(re.fullmatch(r"-?[0-9]+", p) for p in parts):
             raise PsdError(f"--roi {text!r}: give the box as LEFT,TOP,RIGHT,BOTTOM in px of the photo as taken "
                            "(four whole numbers, e.g. 0,0,2000,1500)")
-        return cls(*(int(p) for p in parts))
+        box = [int(p) for p in parts]
+        if cls.out_of_order(*box):
+            raise PsdError(f"--roi {text!r}: {cls.ORDER}")
+        return cls(*box)
 
     def __str__(self) -> str:
         return f"{self.left},{self.top},{self.right},{self.bottom}"

@@ -997,12 +997,12 @@ class GrainOutputs:
             self.names[f] = name
 
     def write(self, path: Path, image: np.ndarray, size_hw: tuple[int, int], res,
-              frame: tuple[float, float, float, float] | None = None) -> None:
+              frame: tuple[float, float, float, float]) -> None:
         """The files of one image from what the estimator found in it (`res`: mask, measurements,
         sizes_mm and raw d-values, as `learn.instances.estimator.InstanceResult`). A part of a photo
         (`predict --roi`): `image` and `size_hw` are the part's, its overlay and mask are of the part,
-        the particle table's positions in the photo's pixels (`frame`: where the part lies in the photo,
-        as `particle_rows` takes it; None: the image is the whole photo)."""
+        the particle table's positions in the photo's pixels (`frame`: where the image lies in the photo,
+        as `particle_rows` takes it)."""
         from ..io import write_png
         from ..learn.instances.draw import draw_overlay, resize_mask
 
@@ -1017,7 +1017,7 @@ class GrainOutputs:
             write_png(self.overlay_dir / f"{self.names.get(path, path.stem)}.png", over, compress_level=1)
             self.written["overlays"] += 1
         if self.writer is not None:
-            self.writer.writerows(particle_rows(path, res, frame or (0.0, 0.0, *map(float, size_hw))))
+            self.writer.writerows(particle_rows(path, res, frame))
             self.file.flush()
             self.n_particles += len(m)
         raw = ", ".join(f"{v:.3f}" for v in res.raw)
